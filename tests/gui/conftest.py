@@ -13,7 +13,7 @@ import os
 import shutil
 import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
@@ -72,6 +72,23 @@ def window_home(tmp_path_factory):
     """The private home (:func:`private_home`) of a module's shared :func:`window`."""
     with private_home(tmp_path_factory.mktemp("window_home")) as home:
         yield home
+
+
+def holds_within(app, check: Callable[[], None], timeout_s: float = 10.0) -> None:
+    """Process ``app``'s events until ``check()`` raises no AssertionError, at most ``timeout_s`` of wall time, then
+    call it once more and let its AssertionError out. A layout settles in events of its own (a tab shown for the
+    first time, a text set, a strip shown): a check of it judges the settled layout, and the bound only ends a hang
+    (a fixed 0.3 s wait before such checks failed beside two CPU hogs in loaded CI runs, and passed on its rerun)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        app.processEvents()
+        try:
+            check()
+            return
+        except AssertionError:
+            time.sleep(0.02)
+    app.processEvents()
+    check()
 
 
 #: the dead man's limit of the shared test windows, s: the GUI tests share a loaded machine, where the GUI thread can

@@ -22,6 +22,8 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from rigctl_gui.colours import MIN_CONTRAST, contrast_ratio, dark_palette
 from rigctl_gui.events import wait_for
 
+from .conftest import holds_within
+
 #: 1280x800 screen pixels at Qt's scale factor 1.5, in Qt's pixels
 SCALED_1280x800 = (853, 533)
 #: a whole 1024x700 screen at Qt's scale factor 1.5, in Qt's pixels: the window's smallest size must fit it
@@ -220,49 +222,65 @@ def test_the_window_fits_a_1024x700_screen_at_1_5x(inprocess_window, qapp):
         assert (w.width(), w.height()) == SCALED_1024x700
         stop = QtCore.QRect(w.stop_btn.mapTo(w, QtCore.QPoint(0, 0)), w.stop_btn.size())
         assert w.rect().contains(stop) and (stop.width(), stop.height()) == (160, 48), stop
+        # each check below judges the settled layout (holds_within: its events processed until it holds, a hang bound)
         for i in range(w.tabs.count()):
             w.tabs.setCurrentIndex(i)
             page, area = w.tabs.widget(i), w.tabs.area(i)  # (shown first: the Analysis tab is built on first show)
-            wait_for(qapp, lambda: False, 0.3)
-            need = page.minimumSizeHint().expandedTo(page.minimumSize())
             name = w.tabs.tabText(i)
-            assert page.width() >= need.width() and page.height() >= need.height(), (name, page.size(), need)
-            view = area.viewport()
-            assert area.horizontalScrollBar().maximum() >= page.width() - view.width(), name
-            assert area.verticalScrollBar().maximum() >= page.height() - view.height(), name
-            assert not _overlaps(page), (name, _overlaps(page))
+
+            def tab_fits(page=page, area=area, name=name) -> None:
+                need = page.minimumSizeHint().expandedTo(page.minimumSize())
+                assert page.width() >= need.width() and page.height() >= need.height(), (name, page.size(), need)
+                view = area.viewport()
+                assert area.horizontalScrollBar().maximum() >= page.width() - view.width(), name
+                assert area.verticalScrollBar().maximum() >= page.height() - view.height(), name
+                assert not _overlaps(page), (name, _overlaps(page))
+
+            holds_within(qapp, tab_fits)
         assert not _overlaps(w.top_strip), _overlaps(w.top_strip)
         # the Live view: its bar on two rows, each readout given its whole width
         w.tabs.setCurrentWidget(w.live)
-        wait_for(qapp, lambda: False, 0.3)
         live = w.live
-        assert live._bar2.indexOf(live.sensor_label) >= 0
-        for label in (live.rate_label, live.sensor_label):
-            assert label.width() >= label.sizeHint().width(), (label.objectName(), label.width())
+
+        def live_bar_whole() -> None:
+            assert live._bar2.indexOf(live.sensor_label) >= 0
+            for label in (live.rate_label, live.sensor_label):
+                assert label.width() >= label.sizeHint().width(), (label.objectName(), label.width())
+
+        holds_within(qapp, live_bar_whole)
         # the control plots: their room, and their axis labels apart
         w.tabs.setCurrentWidget(w.control)
-        wait_for(qapp, lambda: False, 0.3)
         c = w.control
-        assert c.plots.height() >= PLOTS_MIN_PX
-        labels = [p.getAxis("left").label for p in (c.force_plot, c.speed_plot)]
-        a, b = (lab.mapRectToScene(lab.boundingRect()) for lab in labels)
-        assert not a.intersects(b), (a, b)
+
+        def control_plots_apart() -> None:
+            assert c.plots.height() >= PLOTS_MIN_PX
+            labels = [p.getAxis("left").label for p in (c.force_plot, c.speed_plot)]
+            a, b = (lab.mapRectToScene(lab.boundingRect()) for lab in labels)
+            assert not a.intersects(b), (a, b)
+
+        holds_within(qapp, control_plots_apart)
         # the calibration plot (title, axes, bars) inside its widget
         w.tabs.setCurrentWidget(w.calibration)
-        wait_for(qapp, lambda: False, 0.3)
         plot = w.calibration.norm_plot
-        shown = plot.mapFromScene(plot.plotItem.sceneBoundingRect()).boundingRect()
-        assert plot.viewport().rect().adjusted(-1, -1, 1, 1).contains(shown), (shown, plot.viewport().rect())
+
+        def calibration_plot_inside() -> None:
+            shown = plot.mapFromScene(plot.plotItem.sceneBoundingRect()).boundingRect()
+            assert plot.viewport().rect().adjusted(-1, -1, 1, 1).contains(shown), (shown, plot.viewport().rect())
+
+        holds_within(qapp, calibration_plot_inside)
         # the analysis trial view: its plots whole (a trial's title inside, data areas of at least 36 px)
         an = w.analysis
         w.tabs.setCurrentWidget(an)
         an.views.setCurrentIndex(0)
         an.trial_plot.setTitle("Trial 4321: raw taxel readings")
-        wait_for(qapp, lambda: False, 0.3)
-        plots = [an.trial_plot, *(p for p, _ in an.trial_rasters.values())]
-        assert all(p.vb.height() >= 36 for p in plots), [p.vb.height() for p in plots]
-        title = an.trial_plot.titleLabel.item
-        assert title.mapRectToScene(title.boundingRect()).right() <= an.trial_gl.viewport().width() + 1
+
+        def trial_plots_whole() -> None:
+            plots = [an.trial_plot, *(p for p, _ in an.trial_rasters.values())]
+            assert all(p.vb.height() >= 36 for p in plots), [p.vb.height() for p in plots]
+            title = an.trial_plot.titleLabel.item
+            assert title.mapRectToScene(title.boundingRect()).right() <= an.trial_gl.viewport().width() + 1
+
+        holds_within(qapp, trial_plots_whole)
         an.trial_plot.setTitle("Raw taxel readings")
         # the top strip's texts whole: the source, and beside it a stopped run's long state
         assert isinstance(w.source_label, FittedText)
@@ -279,15 +297,19 @@ def test_the_window_fits_a_1024x700_screen_at_1_5x(inprocess_window, qapp):
         run.run_label.setText("Protocol screenshot_demo: STOPPED (the operator pressed STOP): the rig is at rest. "
                               "Resume records the discarded trial again, Abort ends the run - 3/16 done, ETA 0:21")
         run.run_strip.show()
-        wait_for(qapp, lambda: False, 0.3)
-        try:
+
+        def texts_whole() -> None:
             for text in (run.run_label, w.source_label):
                 assert text.verticalScrollBar().maximum() == 0, text.text()
                 assert text.label.font().pixelSize() >= FittedText.MIN_PX
+
+        try:
+            holds_within(qapp, texts_whole)
         finally:
             run.run_strip.hide()
         # a refused setpoint moves none of Apply, Press, Run
         w.tabs.setCurrentWidget(w.control)
+        holds_within(qapp, control_plots_apart)  # the tab's layout settled before the buttons are measured
         wait_for(qapp, lambda: False, 0.3)
 
         def tops():
@@ -297,8 +319,12 @@ def test_the_window_fits_a_1024x700_screen_at_1_5x(inprocess_window, qapp):
         c.speed.setValue(5000.0)
         c.force.setValue(9000.0)
         c.apply_setpoints()
-        wait_for(qapp, lambda: False, 0.3)
-        assert c.setpoint_error.isVisible() and "refused" in c.setpoint_error.text()
+
+        def refused_shown() -> None:
+            assert c.setpoint_error.isVisible() and "refused" in c.setpoint_error.text()
+
+        holds_within(qapp, refused_shown)
+        wait_for(qapp, lambda: False, 0.3)  # the layout's chance to move the buttons for the message
         assert tops() == before
         c.speed.setValue(speed)
         c.force.setValue(force)
