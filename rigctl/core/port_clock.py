@@ -165,7 +165,7 @@ class HostSide:
         self._map = _map(fd)
         self._last_s = 0.0
         self._lock = threading.Lock()
-        self._stamped_before: dict[int, int] = {}  # a write stamp's slot -> its value before the last write's stamp
+        self._stamped_before: dict[int, tuple[int, int]] = {}  # a write stamp's slot -> (its value before, ours)
 
     def world_now(self) -> float:
         t = _slot_s(self._map, 8)
@@ -185,20 +185,21 @@ class HostSide:
         has found bytes to read on the port ``port`` (a path whose name is a link of the rig: ``DIR/drum``): stamped
         now (``time.monotonic``) for the rig's side (:meth:`ClockFile.stamp_s`); a port of another name: nothing.
         ``written`` with ``n_bytes`` negative: the last stamped write failed (``SharedClock.write_failed``), and the
-        stamp before it stands again."""
+        stamp before it stands again (a later write's stamp made meanwhile stays)."""
         slots = _STAMP_SLOTS.get(os.path.basename(port))
         if slots is None:
             return
         offset = slots[0] if written else slots[1]
         with self._lock:
             if written and n_bytes < 0:
-                before = self._stamped_before.pop(offset, None)
-                if before is not None:
-                    struct.pack_into("<Q", self._map, offset, before)
+                stamps = self._stamped_before.pop(offset, None)
+                if stamps is not None and struct.unpack_from("<Q", self._map, offset)[0] == stamps[1]:
+                    struct.pack_into("<Q", self._map, offset, stamps[0])  # (a later write's stamp stays)
                 return
+            now_ns = time.monotonic_ns() + 1
             if written:
-                self._stamped_before[offset] = struct.unpack_from("<Q", self._map, offset)[0]
-            struct.pack_into("<Q", self._map, offset, time.monotonic_ns() + 1)
+                self._stamped_before[offset] = (struct.unpack_from("<Q", self._map, offset)[0], now_ns)
+            struct.pack_into("<Q", self._map, offset, now_ns)
 
     def in_flight(self, port: str) -> bool:
         """Whether a request this face wrote to the drum link ``port`` (a path named ``drum``) or its answer, or the

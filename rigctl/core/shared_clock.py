@@ -33,11 +33,12 @@ No dependency but the standard library (``rigctl.core``).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 from rigctl.core.port_clock import HostSide, open_beside
@@ -205,7 +206,7 @@ class SharedClock:
         #: watchdog: a world that stood would lag a live sample source for good)
         self.stands_while_in_flight = False
         self._written: dict[str, float] = {}  # a port's path -> when the host last began to write to it (wall)
-        self._written_before: dict[str, float] = {}  # and the stamp the last write's replaced (write_failed)
+        self._written_before: dict[str, tuple[float, float]] = {}  # and (the stamp it replaced, its own): write_failed
         self._read: dict[str, float] = {}  # a port's path -> when the host last found bytes to read on it (wall)
 
     # ------------------------------------------------------------------ lifecycle (the heartbeat)
@@ -342,8 +343,9 @@ class SharedClock:
         holds back for hundreds of ms), and a simavr harness waits until it has read that many more bytes
         (``on_stamp``). Also a sign of life (:meth:`touch`)."""
         name = os.fspath(path)
-        self._written_before[name] = self._written.get(name, 0.0)
+        before = self._written.get(name, 0.0)
         _stamp(self._written, path)
+        self._written_before[name] = (before, self._written[name])
         if self.on_stamp is not None:
             self.on_stamp(name, True, int(n_bytes))
         self.touch()
@@ -354,14 +356,26 @@ class SharedClock:
         (:meth:`written_at`), and ``on_stamp`` is told with ``-n_bytes`` (a simavr harness then waits for none of
         them): a board would otherwise take the host for one that spoke, and wait for its bytes, for up to
         :data:`KERNEL_HOP_MAX_S` of wall time (a watchdog that latches that much later than on a bench). A stamp a
-        later :meth:`note_write` made stays."""
+        later :meth:`note_write` made meanwhile stays. :meth:`writing` calls it."""
         name = os.fspath(path)
-        before = self._written_before.pop(name, None)
-        if before is None:
+        stamps = self._written_before.pop(name, None)
+        if stamps is None:
             return
-        self._written[name] = before
+        if self._written.get(name) == stamps[1]:
+            self._written[name] = stamps[0]
         if self.on_stamp is not None:
             self.on_stamp(name, True, -int(n_bytes))
+
+    @contextlib.contextmanager
+    def writing(self, path: str | os.PathLike[str], n_bytes: int) -> Iterator[None]:
+        """A host's write of ``n_bytes`` bytes to the board's port ``path`` inside the ``with``:
+        :meth:`note_write` before it, :meth:`write_failed` if it raises (the exception goes on)."""
+        self.note_write(path, n_bytes)
+        try:
+            yield
+        except BaseException:
+            self.write_failed(path, n_bytes)
+            raise
 
     def written_at(self, path: str | os.PathLike[str]) -> float:
         """When the host last began to write to ``path`` (:meth:`note_write`; ``time.monotonic``, 0.0 if never).

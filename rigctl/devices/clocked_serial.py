@@ -41,14 +41,11 @@ class ClockedSerialClient(ModbusSerialClient):
         return int(self.socket.in_waiting) if self.socket else 0
 
     def send(self, request: bytes, addr: tuple[Any, ...] | None = None) -> int:
-        self.clock.note_write(self.comm_params.host, len(request))  # before the write: the board's side knows it is on the way
-        if self._waiting():  # pymodbus drops what waits before it sends
-            self.note_taken()
-        try:
+        # stamped before the write: the board's side knows it is on the way (taken back if the write raises)
+        with self.clock.writing(self.comm_params.host, len(request)):
+            if self._waiting():  # pymodbus drops what waits before it sends
+                self.note_taken()
             return super().send(request, addr)
-        except BaseException:  # nothing is on its way: the stamp is taken back
-            self.clock.write_failed(self.comm_params.host, len(request))
-            raise
 
     def _wait_for_data(self) -> int:
         """Bytes waiting once they have stopped growing (two looks in a row the same, as pymodbus' wait), or what is

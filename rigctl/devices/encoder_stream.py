@@ -244,12 +244,8 @@ class OnboardEncoder:
         if self._clock is None:
             self.port.write(data)
             return
-        self._clock.note_write(self._name, len(data))
-        try:
+        with self._clock.writing(self._name, len(data)):
             self.port.write(data)
-        except BaseException:  # nothing is on its way: the stamp is taken back
-            self._clock.write_failed(self._name, len(data))
-            raise
 
     @property
     def samples(self) -> int:

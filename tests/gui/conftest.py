@@ -75,20 +75,21 @@ def window_home(tmp_path_factory):
 
 
 def holds_within(app, check: Callable[[], None], timeout_s: float = 10.0) -> None:
-    """Process ``app``'s events until ``check()`` raises no AssertionError, at most ``timeout_s`` of wall time, then
-    call it once more and let its AssertionError out. A layout settles in events of its own (a tab shown for the
-    first time, a text set, a strip shown): a check of it judges the settled layout, and the bound only ends a hang
-    (a fixed 0.3 s wait before such checks failed beside two CPU hogs in loaded CI runs, and passed on its rerun)."""
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        app.processEvents()
+    """Process ``app``'s events until ``check()`` raises no AssertionError (:func:`rigctl_gui.events.wait_for`), at
+    most ``timeout_s`` of wall time; if it never held, call it once more and let its AssertionError out. A layout
+    settles in events of its own (a tab shown for the first time, a text set, a strip shown): a check of it judges
+    the settled layout, and the bound only ends a hang (a fixed 0.3 s wait before such checks failed beside two CPU
+    hogs in loaded CI runs, and passed on its rerun)."""
+
+    def holds() -> bool:
         try:
             check()
-            return
         except AssertionError:
-            time.sleep(0.02)
-    app.processEvents()
-    check()
+            return False
+        return True
+
+    if not wait_for(app, holds, timeout_s):
+        check()
 
 
 #: the dead man's limit of the shared test windows, s: the GUI tests share a loaded machine, where the GUI thread can
