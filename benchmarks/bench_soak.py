@@ -293,6 +293,9 @@ def _wait_released(path: Path, timeout_s: float = 30.0) -> bool:
     return _wait(free, timeout_s)
 
 
+KILL_GRACE_S = 120.0  # how long past its length a soak's kill -9 part may go on for its first kill and session
+
+
 def kill_soak(stop_at: float, seed: int, work: Path, out: dict, protocol: str = KILL_PROTOCOL,
               rigctl: Sequence[str] = RIGCTL) -> None:
     rng = random.Random(seed + 2)
@@ -304,8 +307,17 @@ def kill_soak(stop_at: float, seed: int, work: Path, out: dict, protocol: str = 
     tmp = work / "tmp"  # the commands' temporary folder: every port folder left in it at the end is a leftover
     tmp.mkdir()
     env = dict(os.environ, RIGCTL_CONFIG=str(work / "rig.json"), TMPDIR=str(tmp))
+    # a short soak on a busy machine may end before it has killed one run that had made its simulated rig (the first
+    # kill comes 1-10 s after a start that can take seconds) or before a session ran to its end: it goes on, at most
+    # KILL_GRACE_S past its length, until it has both (a soak that never gets them fails on its figures, not a hang)
+    grace_until = stop_at + KILL_GRACE_S
+
+    def go_on_killing() -> bool:
+        now = time.monotonic()
+        return now < stop_at or (f["tmp_left_by_kills"] == 0 and now < grace_until)
+
     session = 0
-    while time.monotonic() < stop_at:
+    while go_on_killing() or (f["sessions_completed"] == 0 and time.monotonic() < grace_until):
         path = work / f"kill-{session}.h5"
         finished: dict[int, str] = {}
         while True:
@@ -313,7 +325,7 @@ def kill_soak(stop_at: float, seed: int, work: Path, out: dict, protocol: str = 
             if path.exists():
                 cmd.append("--resume")
             proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-            kill = time.monotonic() < stop_at  # the last run of the soak is let finish
+            kill = go_on_killing()  # the last run of the soak is let finish
             try:
                 proc.wait(timeout=rng.uniform(1.0, 10.0) if kill else 300)
             except subprocess.TimeoutExpired:

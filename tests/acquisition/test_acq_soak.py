@@ -1,6 +1,8 @@
 """The soak benchmark (benchmarks/bench_soak.py) for a quarter of a minute: faults on both links and kill -9 cycles,
 with every must-be-0 figure at 0 (the benchmark's own runs go for an hour; the taxel link's one segment lasts 10-30 s
-whatever the soak's length: seed 3 draws 14.8 s)."""
+whatever the soak's length: seed 3 draws 14.8 s). Its kill -9 part goes on past the quarter minute (at most
+KILL_GRACE_S) until it has killed a run that had made its simulated rig and completed a session: on a loaded CI machine
+(run 13, two CPU hogs beside it) a quarter minute held neither, twice."""
 
 import importlib.util
 from pathlib import Path
