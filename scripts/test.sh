@@ -214,6 +214,7 @@ workers="${RIGCTL_TEST_WORKERS:-$(( free_cores * 3 + 1 > 8 ? 8 : free_cores * 3 
 echo "== $workers test workers ($cores cores, $others_busy_cores kept busy by other programs at the start; nice $(nice))"
 status=0
 export RIGCTL_FAILURES_LOG="$TEST_TMP/failures.log"  # failed tests and their tier (tests/conftest.py)
+export RIGCTL_RERUNS_LOG="$TEST_TMP/reruns.log"  # each attempt run again at once, and why it failed (printed below)
 # A wall-clock test that fails in the parallel run is first run again at once, on its own worker, while the others go
 # on (pytest-rerunfailures; RIGCTL_WALL_RERUNS, tests/conftest.py): most such failures were the saturated CPU's, and
 # pass then, without adding their wall time to the run's end (a serial rerun of one firmware test took ~25 s of the
@@ -221,6 +222,10 @@ export RIGCTL_FAILURES_LOG="$TEST_TMP/failures.log"  # failed tests and their ti
 RIGCTL_WALL_RERUNS=1 python3 -m pytest -q -n "$workers" --dist loadfile --durations=25 --strict-markers -r fER \
   -o cache_dir="$TEST_TMP/pytest-cache" "$@" || status=$?
 phase "pytest done (exit $status)"
+if [ -s "$RIGCTL_RERUNS_LOG" ]; then
+  echo "== run again at once in the parallel run (node id, phase, where and why the first attempt failed):"
+  sed 's/^/   /' "$RIGCTL_RERUNS_LOG"
+fi
 # Wall-clock failures (failed twice in the parallel run) get one more chance, alone. The parallel run keeps the CPU
 # saturated (~1,000 CPU-s of tests on a 2-core machine, workers beside the rigs they pace), and a test of a wall-clock
 # tier (realtime, gui: tests/conftest.py WALL_CLOCK_TIERS; the simulated rigs' tests, firmware and conformance among

@@ -204,6 +204,24 @@ def pytest_runtest_logreport(report):
         tier = "wall" if any(m in report.keywords for m in WALL_CLOCK_TIERS) else "logic"
         with open(path, "a") as f:
             f.write(f"{report.nodeid}\t{tier}\t{report.when}\n")
+    log_rerun(report)
+
+
+def log_rerun(report) -> None:
+    """With ``$RIGCTL_RERUNS_LOG`` set (a file path), append one line per failed attempt that pytest-rerunfailures
+    runs again: node id, phase and the first line of why it failed, tab-separated (pytest's summary lists a rerun
+    with no reason: a loaded CI run reran test_gui_handheld's stop/resume and left no word of which wait ran out).
+    Written by the process that reports to the terminal only (the controller of a parallel run), so once per attempt;
+    scripts/test.sh prints the log at the end of its run."""
+    path = os.environ.get("RIGCTL_RERUNS_LOG")
+    if not path or report.outcome != "rerun" or os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    crash = getattr(report.longrepr, "reprcrash", None)
+    why = str(getattr(crash, "message", None) or report.longrepr or "?")
+    why = " ".join(why.split())[:400]
+    where = f"{crash.path}:{crash.lineno}" if crash is not None else "?"
+    with open(path, "a") as f:
+        f.write(f"{report.nodeid}\t{report.when}\t{where}\t{why}\n")
 
 
 def wall_clock_reruns(items) -> None:

@@ -78,8 +78,10 @@ def _run(tmp_path: Path, reruns: str | None) -> tuple[subprocess.CompletedProces
     (suite / "conftest.py").write_text(SANDBOX_CONFTEST.format(conftest=str(TESTS / "conftest.py")))
     runs, log = tmp_path / "runs", tmp_path / "failures.log"
     runs.mkdir()
-    env = {k: v for k, v in os.environ.items() if k not in ("RIGCTL_WALL_RERUNS", "RIGCTL_FAILURES_LOG")}
-    env.update(SANDBOX_RUNS=str(runs), RIGCTL_FAILURES_LOG=str(log), PYTHONDONTWRITEBYTECODE="1")
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("RIGCTL_WALL_RERUNS", "RIGCTL_FAILURES_LOG", "RIGCTL_RERUNS_LOG", "PYTEST_XDIST_WORKER")}
+    env.update(SANDBOX_RUNS=str(runs), RIGCTL_FAILURES_LOG=str(log), RIGCTL_RERUNS_LOG=str(tmp_path / "reruns.log"),
+               PYTHONDONTWRITEBYTECODE="1")
     if reruns is not None:
         env["RIGCTL_WALL_RERUNS"] = reruns
     r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-r", "fER",
@@ -97,6 +99,11 @@ def test_a_wall_clock_failure_runs_again_at_once_and_only_last_verdicts_are_logg
     assert counts == {"wall_once": 2, "wall_always": 2, "logic_once": 1, "firmware_once": 1}, counts
     assert "RERUN test_sandbox.py::test_wall_fails_once" in r.stdout, r.stdout[-2000:]
     assert "2 rerun" in r.stdout and "3 failed, 1 passed" in r.stdout, r.stdout[-800:]
+    # the reruns log: each attempt run again, with why it failed (the assertion pytest's summary leaves out)
+    reruns = (tmp_path / "reruns.log").read_text().splitlines()
+    assert [line.split("\t")[:2] for line in reruns] == [["test_sandbox.py::test_wall_fails_once", "call"],
+                                                        ["test_sandbox.py::test_wall_always_fails", "call"]], reruns
+    assert all("test_sandbox.py:" in line and "assert" in line.split("\t")[3] for line in reruns), reruns
     # the failures log: what failed in the end, with its tier (the one that passed on its second run is not there)
     assert logged == ["test_sandbox.py::test_firmware_fails_once\tlogic\tcall",
                       "test_sandbox.py::test_logic_fails_once\tlogic\tcall",
@@ -108,7 +115,7 @@ def test_without_the_setting_nothing_is_rerun(tmp_path):
     r, counts, logged = _run(tmp_path, None)
     assert r.returncode == 1
     assert counts == {"wall_once": 1, "wall_always": 1, "logic_once": 1, "firmware_once": 1}, counts
-    assert "rerun" not in r.stdout.splitlines()[-1]
+    assert "rerun" not in r.stdout.splitlines()[-1] and not (tmp_path / "reruns.log").exists()
     assert [line.split("\t")[:2] for line in logged] == [
         ["test_sandbox.py::test_firmware_fails_once", "logic"], ["test_sandbox.py::test_logic_fails_once", "logic"],
         ["test_sandbox.py::test_wall_always_fails", "wall"], ["test_sandbox.py::test_wall_fails_once", "wall"]]
