@@ -16,8 +16,10 @@ def main() -> None:
     """Run ``rigctl`` (:func:`rigctl.cli.main`); a Ctrl-C while it is imported is one line, exit status 1."""
     try:
         from rigctl.cli import main as cli, skip_exit_collections
+        from rigctl.cli.interrupts import keep_ctrl_c
     except KeyboardInterrupt:
         sys.stderr.write("Error: interrupted (Ctrl-C) while rigctl was starting: nothing was done\n")
         raise SystemExit(1) from None
     skip_exit_collections()
+    keep_ctrl_c()
     cli(prog_name="rigctl")

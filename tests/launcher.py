@@ -107,7 +107,9 @@ def _child(argv: list[str], cwd: str, env: dict[str, str], fds: list[int]) -> in
     for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGCHLD):
         signal.signal(sig, signal.SIG_DFL)
     from rigctl.cli import main
+    from rigctl.cli.interrupts import keep_ctrl_c
 
+    keep_ctrl_c()  # as the console script does (rigctl_launch)
     sys.argv = ["rigctl", *argv]
     try:
         code = main()

@@ -1,0 +1,76 @@
+"""A Ctrl-C is never lost in a callback from C code.
+
+Python raises a Ctrl-C's ``KeyboardInterrupt`` in whatever Python code the main thread runs at that moment. When that
+is a callback that C code called through ctypes (numba's compiled-kernel cache: llvmlite's
+``ExecutionEngine._raw_object_cache_notify``, called while a command loads or compiles its kernels), the exception
+cannot pass through the C frames: Python prints "Exception ignored on calling ctypes callback function" with a
+traceback and the program goes on. A loaded CI run met it: ``rigctl sim dataset`` interrupted 0.8 s after its start
+printed that traceback and then wrote its whole dataset.
+
+:func:`keep_ctrl_c` raises such an interrupt again, silently, in the Python code that called the C function, as soon
+as control is back there (a profile function, ``sys.setprofile``, on that frame's next event): the C code has
+returned, and the command ends as a Ctrl-C ends it anywhere else (one line; its partial output removed, or kept
+resumable, as the command says). An interrupt swallowed outside the main thread, or with no Python caller, is raised
+again in the main thread a moment later (``_thread.interrupt_main``).
+"""
+
+from __future__ import annotations
+
+import _thread
+import sys
+import threading
+from collections.abc import Callable
+from types import FrameType
+from typing import Literal
+
+__all__ = ["keep_ctrl_c", "REDELIVER_S"]
+
+#: a profile function's events (``sys.setprofile``)
+ProfileEvent = Literal["call", "return", "c_call", "c_return", "c_exception"]
+
+#: how long after a swallowed Ctrl-C it is raised again in the main thread where its caller cannot be found (s)
+REDELIVER_S = 0.01
+
+
+def _raise_on_return_to(target: FrameType) -> None:
+    """Raise ``KeyboardInterrupt`` at the main thread's next profile event in ``target`` (a builtin it calls or its own
+    return): the first moment its Python code runs again."""
+    previous = sys.getprofile()
+
+    def profile(frame: FrameType, event: ProfileEvent, arg: object) -> None:
+        if frame is target and event in ("c_call", "c_return", "return"):
+            sys.setprofile(previous)
+            raise KeyboardInterrupt
+        if previous is not None:
+            previous(frame, event, arg)
+
+    sys.setprofile(profile)
+
+
+def _redeliver_later() -> None:
+    timer = threading.Timer(REDELIVER_S, _thread.interrupt_main)
+    timer.daemon = True
+    timer.start()
+
+
+def keep_ctrl_c() -> None:
+    """Install the hook (``sys.unraisablehook``, wrapping the one in place): an unraisable ``KeyboardInterrupt`` is
+    not printed but raised again once C code has returned to its Python caller (see the module's text); every other
+    unraisable exception goes to the previous hook. Idempotent. Called by the ``rigctl`` entries (the console script,
+    ``python -m rigctl``, the tests' preloaded launcher), not by in-process runs."""
+    previous: Callable[[sys.UnraisableHookArgs], object] = sys.unraisablehook
+    if getattr(previous, "_rigctl_keeps_ctrl_c", False):
+        return
+
+    def hook(unraisable: sys.UnraisableHookArgs) -> None:
+        if unraisable.exc_type is None or not issubclass(unraisable.exc_type, KeyboardInterrupt):
+            previous(unraisable)
+            return
+        caller = sys._getframe(1)  # the Python code that called the C code whose callback swallowed the interrupt
+        if threading.current_thread() is threading.main_thread() and caller is not None:
+            _raise_on_return_to(caller)
+        else:
+            _redeliver_later()
+
+    hook._rigctl_keeps_ctrl_c = True  # type: ignore[attr-defined]
+    sys.unraisablehook = hook
