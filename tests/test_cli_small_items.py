@@ -140,6 +140,29 @@ def test_ctrl_c_while_rigctl_starts_is_one_line(tmp_path):
             assert out.exists() == ("are kept in" in last), text
 
 
+
+@pytest.mark.parametrize("made", [False, True])
+def test_sim_dataset_interrupted_says_kept_only_where_a_file_was_made(tmp_path, monkeypatch, made):
+    """A Ctrl-C before the dataset's file is made said "the trials rendered so far are kept in X; continue with
+    --resume" of a file that did not exist (a loaded CI run's first attempt of the Ctrl-C test above)."""
+    import rigctl.simulation.dataset as dataset
+
+    out = tmp_path / "d.h5"
+
+    def interrupted(*args, **kwargs):
+        if made:
+            out.write_bytes(b"")  # (the command only looks whether it is there)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dataset, "generate_dataset", interrupted)
+    code, text = _run("sim", "dataset", "quick_check", "--out", out)
+    line = _one_error_line(text)
+    assert code == 1 and out.exists() == made, text
+    if made:
+        assert "kept in" in line and "--resume" in line, line
+    else:
+        assert line == f"Error: interrupted before {out} was made: nothing was written", line
+
 _LSL_OUTLET = """
 import sys
 from rigctl.cli.logs import route_library_logs

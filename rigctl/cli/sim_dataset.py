@@ -91,6 +91,8 @@ def dataset(protocol, out, trials_per_condition, seed, workers, compression, sta
                                        compression=None if compression == "none" else compression,
                                        overwrite=overwrite, resume=resume)
     except KeyboardInterrupt:
+        if not Path(out).exists():  # interrupted before the file was made: nothing to keep or continue
+            raise click.ClickException(f"interrupted before {out} was made: nothing was written") from None
         raise click.ClickException(f"interrupted: the trials rendered so far are kept in {out}; continue with "
                                    f"`rigctl sim dataset {protocol} --out {out} --resume`") from None
     except ProtocolError as exc:
