@@ -222,11 +222,12 @@ def test_a_request_or_a_reply_the_kernel_still_holds_is_on_its_way_to_the_watchd
         # the heartbeat ran the world on: the watchdog then latched before the case began; a loaded CI run)
         if _on_its_way_to_the_watchdog(face):
             return
-    pytest.fail("three times the watchdog latched before the write was stamped")
+    pytest.fail("three times the watchdog latched before the write was stamped, or a read needed a retry")
 
 
 def _on_its_way_to_the_watchdog(face: str) -> bool:
-    """The case of the test above on a rig of its own; False if the watchdog latched before it began."""
+    """The case of the test above on a rig of its own; False if the watchdog latched before it began, or a read
+    needed a retry (a second answer then rightly on its way)."""
     with SimulatedRig() as sim:
         clock = sim.clock if face == "this process" else attach_port_clock(sim.drum_port)
         c = DrumClient(sim.drum_port, clock=clock, timeout_s=2.0).open()
@@ -252,8 +253,11 @@ def _on_its_way_to_the_watchdog(face: str) -> bool:
             sim.mega.bridge.to_client_at = time.monotonic()  # a reply handed on that the host's pty has not got
             assert sim.mega.reply_on_its_way()
             assert silent_for(0.6) > 0.3
+            timeouts = c.timeouts
             st = c.read_status()  # the host finds the next reply
             assert st.state == DrumState.RUNNING and not st.faults & Fault.WATCHDOG, (st.state.name, repr(st.faults))
+            if c.timeouts != timeouts:  # the kernel held an answer past the client's timeout, and its retry's answer
+                return False  # is on its way now, rightly (once, at load 7-17 with ftrace running): not this case
             assert not sim.mega.request_on_its_way() and not sim.mega.reply_on_its_way()
             assert silent_for(0.6) > 0.3  # nothing on the way: the silence trips it
             assert c.read_status().faults & Fault.WATCHDOG
