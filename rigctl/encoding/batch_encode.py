@@ -83,12 +83,21 @@ def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_l
     rg = as_ragged(rg)
     if rate_hz is not None:
         rg, _ = _at_model_rate(rg, rate_hz, p.fs_hz)
+    sa_by, ra = _encode_trains(rg, offset, scale, coeffs, coeffs_label_free, variants, p)
+    return trains_to_features(sa_by, ra, rg.lengths, np.asarray(speed_mm_s, np.float64), variants=variants, params=p,
+                              window_speed=window_speed, store_spikes=store_spikes)
+
+
+def _encode_trains(rg: Ragged, offset: Any, scale: Any, coeffs: Any, coeffs_label_free: Any, variants: Any,
+                  p: EncodeParams) -> tuple[dict[str, SpikeTrains], SpikeTrains]:
+    """The first half of :func:`encode_batch`: the SA trains the ``variants`` need, by :func:`_sa_key` ("none",
+    "force", "lf"; (n_trials, n_ch) each), and the RA trains, from readings ``rg`` at the model's rate (arguments
+    as :func:`encode_batch`'s). Raises ValueError for an unknown variant."""
     n, n_ch = rg.n_trials, rg.n_channels
     bad = [v for v in variants if v not in VARIANTS]
     if bad:
         raise ValueError(f"unknown variants {bad}; choose from {ALL_VARIANTS}")
     info = [VARIANTS[v] for v in variants]
-    speed = np.asarray(speed_mm_s, np.float64)
     ones = np.ones((n, n_ch))
     need_force = any(i.force_scaled and not i.label_free for i in info)
     need_lf = any(i.label_free for i in info)
@@ -103,8 +112,23 @@ def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_l
         sa_by["force"] = sas[1]
     if need_lf:
         sa_by["lf"] = sas[-1]
-    return trains_to_features(sa_by, ra, rg.lengths, speed, variants=variants, params=p, window_speed=window_speed,
-                              store_spikes=store_spikes)
+    return sa_by, ra  # type: ignore[return-value]  # ra: run_fused was asked for it
+
+
+def _sa_key(info: Any) -> str:
+    """Which SA trains a variant (its :class:`rigctl.storage.encoded.VariantInfo`) is made of: "lf" (the
+    label-free force coefficients), "force" (the per-texture ones) or "none" (C = 1)."""
+    return "lf" if info.label_free else "force" if info.force_scaled else "none"
+
+
+def _unscaled_twin(variant: str) -> str | None:
+    """The variant without speed scaling whose trains ``variant``'s are (the variant itself when it is not
+    speed-scaled; eq. 2's factor apart otherwise); None for the real-time variants (scaled window by window)."""
+    info = VARIANTS[variant]
+    if info.realtime:
+        return None
+    return next((b for b, i in VARIANTS.items() if not i.speed_scaled and not i.realtime
+                 and (i.force_scaled, i.label_free) == (info.force_scaled, info.label_free)), None)
 
 
 def trains_to_features(sa_by: dict[str, Any], ra: SpikeTrains, lengths, speed_mm_s, *, variants, params: EncodeParams,
@@ -150,7 +174,7 @@ def trains_to_features(sa_by: dict[str, Any], ra: SpikeTrains, lengths, speed_mm
     def one(v: str, i: Any) -> tuple[np.ndarray, Any]:
         """Variant ``v``'s features and, if stored, its spike trains (None otherwise)."""
         if not i.realtime:
-            sa = sa_by["lf" if i.label_free else "force" if i.force_scaled else "none"]
+            sa = sa_by[_sa_key(i)]
             if i.speed_scaled:
                 sa_v, ra_v = sa.scale_times(coef), ra_scaled
                 f = spike_features(sa_v, ra_v, n_windows=n_scaled,  # type: ignore[arg-type]  # set with scaled

@@ -73,7 +73,14 @@ from rigctl.core.cluster import dask_client
 from rigctl.core.progress import ProgressCallback, Stage, note as progress_note
 from rigctl.core.provenance import PROVENANCE_ATTR, provenance_json, software_provenance
 from rigctl.core.sensor import SensorLayout
-from rigctl.encoding.batch_encode import _realtime_taxels, encode_batch, trains_to_features
+from rigctl.encoding.batch_encode import (
+    _encode_trains,
+    _realtime_taxels,
+    _sa_key,
+    _unscaled_twin,
+    encode_batch,
+    trains_to_features,
+)
 from rigctl.encoding.force import ForceCoefficients, fit_scalers
 from rigctl.encoding.fused import kernels_cached
 from rigctl.encoding.izhikevich import Ragged, as_ragged
@@ -86,6 +93,7 @@ from rigctl.encoding.speed import (
     speed_coefficient,
     window_speeds,
 )
+from rigctl.encoding.spikes import SpikeTrains
 from rigctl.storage.encoded import ALL_VARIANTS, MAIN_VARIANTS, VARIANTS, EncodedWriter
 from rigctl.storage.outputs import check_output
 
@@ -161,10 +169,30 @@ def _batch_task(session_path, ids, speed, coeffs, coeffs_lf, offset, scale, vari
 
 
 def _encode_read(rg, ws, speed, coeffs, coeffs_lf, offset, scale, variants, store_spikes, params):
-    """Encode and featurise a batch already read (the model input ``rg`` and window speeds ``ws``)."""
-    return encode_batch(rg, offset=offset, scale=scale, speed_mm_s=speed, coeffs=coeffs,
-                        coeffs_label_free=coeffs_lf, window_speed=ws, variants=variants, params=params,
-                        store_spikes=store_spikes)
+    """Encode and featurise a batch already read (the model input ``rg`` and window speeds ``ws``): what
+    :func:`encode_batch` gives, except that a variant the file stores as ticks (:func:`_tick_source`) gets the
+    (ticks, row ends) of its unscaled trains (:meth:`SpikeTrains.hstack_ticks`, made once for a base and its
+    speed-scaled twin) instead of its SpikeTrains: the same numbers in the file, without the float64 copies."""
+    sa_by, ra = _encode_trains(rg, offset, scale, coeffs, coeffs_lf, variants, params)
+    floats = [v for v in store_spikes if _tick_source(v, store_spikes) is None]
+    feats, spikes = trains_to_features(sa_by, ra, rg.lengths, np.asarray(speed, np.float64), variants=variants,
+                                       params=params, window_speed=ws, store_spikes=floats)
+    ticks: dict[str, Any] = {}
+    for v in store_spikes:
+        src = _tick_source(v, store_spikes)
+        if src is not None:
+            if src not in ticks:
+                ticks[src] = SpikeTrains.hstack_ticks([sa_by[_sa_key(VARIANTS[src])], ra], 1.0 / float(params.fs_hz))
+            spikes[v] = ticks[src]
+    return feats, spikes
+
+
+def _tick_source(variant: str, stored) -> str | None:
+    """The unscaled variant whose ticks a variant stored with ticks holds (:func:`_add_spike_tables`): itself, or
+    for a speed-scaled one its base when that is stored too; None for a variant stored otherwise (real-time: float64
+    times; speed-scaled without its base: its own ticks from its scaled times)."""
+    base = _unscaled_twin(variant)
+    return base if base is not None and (base == variant or base in stored) else None
 
 
 # ---------------------------------------------------------------------------------------------------------- session
@@ -228,10 +256,8 @@ def _add_spike_tables(writer, store_spikes, n_ch: int, p: EncodeParams) -> None:
         if info.realtime and info.speed_scaled:
             writer.add_spikes(v, n_trains, trains)
             continue
-        base = next((b for b, i in VARIANTS.items() if not i.speed_scaled and (i.force_scaled, i.label_free,
-                     i.realtime) == (info.force_scaled, info.label_free, info.realtime)), None)
-        writer.add_spikes(v, n_trains, trains, tick_s=tick_s,
-                          ticks_from=base if info.speed_scaled and base in store_spikes else None)
+        base = _tick_source(v, store_spikes)
+        writer.add_spikes(v, n_trains, trains, tick_s=tick_s, ticks_from=base if base not in (None, v) else None)
 
 
 def _time_scale(variant: str, speed_mm_s, p: EncodeParams):
@@ -726,7 +752,10 @@ def _encode_pass(writer: EncodedWriter, run: EncodeRun, p: EncodeParams, read: _
         for v, f in feats.items():
             writer.write_features(v, int(batch[0]), f)
         for v in run.store_spikes:  # bases before their speed-scaled twins
-            writer.append_spikes(v, spikes[v], _time_scale(v, speed[batch], p))
+            if isinstance(spikes[v], tuple):  # (ticks, row ends): _encode_read
+                writer.append_spike_ticks(v, *spikes[v], _time_scale(v, speed[batch], p))
+            else:
+                writer.append_spikes(v, spikes[v], _time_scale(v, speed[batch], p))
 
     args = [(str(run.session_path), [read.ids[i] for i in b], speed[b],
              None if force.coeffs is None else force.coeffs[b], None if force.coeffs_lf is None else force.coeffs_lf[b],

@@ -48,6 +48,22 @@ def _gather(times, starts, lengths, ends, out):  # pragma: no cover - compiled b
             out[o + i] = times[s + i]
 
 
+@numba.njit(cache=True, nogil=True)
+def _gather_ticks(times, starts, lengths, ends, tick_s, out):  # pragma: no cover - compiled by numba
+    """:func:`_gather` into uint32 ticks of ``tick_s``: ``out[...] = rint(t / tick_s)``; False (the rest of ``out``
+    unset) at the first time off the tick grid (``|ticks * tick_s - t| > 1e-12 |t|``) or outside uint32's range."""
+    for r in range(starts.size):
+        o = ends[r] - lengths[r]
+        s = starts[r]
+        for i in range(lengths[r]):
+            t = times[s + i]
+            k = np.rint(t / tick_s)
+            if not (k >= 0.0 and k <= 4294967295.0 and abs(k * tick_s - t) <= 1e-12 * abs(t)):
+                return False
+            out[o + i] = np.uint32(k)
+    return True
+
+
 @dataclass(frozen=True)
 class SpikeTrains:
     """A ragged set of spike trains, ``shape = (n_trials, n_trains)`` logical rows.
@@ -199,6 +215,37 @@ class SpikeTrains:
             axis=1,
         ).ravel()
         return joined._gather_rows(rows, sum(p.n_trains for p in parts))
+
+    @staticmethod
+    def hstack_ticks(parts: list["SpikeTrains"], tick_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`hstack` of ``parts`` as ticks of ``tick_s`` s, in one pass without the joined float64 times (what
+        an encoded file stores: :meth:`rigctl.storage.encoded.EncodedWriter.append_spike_ticks`).
+
+        Returns
+        -------
+        (ticks (n_spikes,) uint32 = ``rint(time / tick_s)``, row ends (n_trials * sum of the parts' n_trains,)
+        int64) of the joined trains.
+
+        Raises
+        ------
+        ValueError
+            if the parts' trial counts differ, or a time is not a multiple of ``tick_s`` (within 1e-12 relative)
+            or its tick is outside uint32's range.
+        """
+        n_trials = parts[0].n_trials
+        if any(p.n_trials != n_trials for p in parts):
+            raise ValueError("hstack needs the same number of trials in every part")
+        counts = np.concatenate([p.counts() for p in parts], axis=1)  # (n_trials, joined trains)
+        ends = np.cumsum(counts.ravel(), dtype=np.int64)
+        out = np.empty(int(ends[-1]) if ends.size else 0, dtype=np.uint32)
+        col = 0
+        for p in parts:  # part p's rows land in the joined columns col .. col + p.n_trains - 1 of every trial
+            rows = (np.arange(n_trials)[:, None] * counts.shape[1] + col + np.arange(p.n_trains)[None, :]).ravel()
+            lengths = np.diff(p.spike_times_index, prepend=0)
+            if not _gather_ticks(p.spike_times, p.row_starts, lengths, ends[rows], float(tick_s), out):
+                raise ValueError(f"spike times are not multiples of tick_s = {tick_s:g} s")
+            col += p.n_trains
+        return out, ends
 
     @staticmethod
     def vstack_rows(parts: list["SpikeTrains"]) -> "SpikeTrains":

@@ -245,14 +245,9 @@ class EncodedWriter:
             base = self._append(g["spike_times"], st)
             self._append(g["spike_times_index"], idx + base)
             return
-        n_trials = idx.size // n_trains
-        scale = np.broadcast_to(np.asarray(1.0 if time_scale is None else time_scale, np.float64), (n_trials,))
-        ticks_from = g.attrs.get("ticks_from")
-        if ticks_from is not None:  # the base's ticks and rows: only the scale is this variant's
-            if self._batch_spikes.get(str(ticks_from)) != st.size:
-                raise ValueError(f"{variant}: {st.size} spikes in this batch, {ticks_from} had "
-                                 f"{self._batch_spikes.get(str(ticks_from))}: not the same trains")
-            self._append(g["time_scale"], np.ascontiguousarray(scale))
+        scale = self._scale(idx, n_trains, time_scale)
+        if g.attrs.get("ticks_from") is not None:  # the base's ticks and rows: only the scale is this variant's
+            self._store_ticks(variant, None, idx, st.size, scale)
             return
         tick_s = float(g.attrs["tick_s"])
         # a scale of 1 (unscaled variants) multiplies nothing: the same numbers without the per-spike array
@@ -261,10 +256,61 @@ class EncodedWriter:
         if st.size and (ticks.min() < 0 or ticks.max() > np.iinfo(np.uint32).max
                         or not _on_grid(ticks * tick_s * per_spike, st)):
             raise ValueError(f"{variant}: spike times are not multiples of tick_s = {tick_s:g} s x time_scale")
-        base = self._append(g["spike_ticks"], ticks.astype(np.uint32))
-        self._append(g["spike_times_index"], idx + base)
+        self._store_ticks(variant, ticks.astype(np.uint32), idx, st.size, scale)
+
+    def append_spike_ticks(self, variant: str, ticks: np.ndarray, index: np.ndarray, time_scale: Any = None) -> None:
+        """Append the next trials' trains already as ticks, in trial order: what :meth:`append_spikes` stores for
+        a variant added with ``tick_s``, without converting times (e.g.
+        :meth:`rigctl.encoding.spikes.SpikeTrains.hstack_ticks` of the encoder's trains).
+
+        Parameters
+        ----------
+        ticks : (n_spikes,) uint32 ticks of the variant's ``tick_s``, unscaled (time = ticks x tick_s x
+            ``time_scale``); for a ``ticks_from`` variant the base's ticks of the same trials (only their count is
+            used: the file stores the base's once).
+        index : (n_trials * n_trains,) int64 row ends into ``ticks``.
+        time_scale : scalar or (n_trials,) as :meth:`append_spikes` (default 1).
+
+        Raises
+        ------
+        KeyError if :meth:`add_spikes` was not called for ``variant``; ValueError for a variant stored as float64
+        times, ticks that are not uint32, rows that are not a multiple of the train count or do not end at
+        ``len(ticks)``, or a ``ticks_from`` variant whose count differs from its base's in this batch.
+        """
+        g = self._spikes[variant]
+        ticks, idx = np.asarray(ticks), np.asarray(index, np.int64)
+        if "spike_times" in g or ticks.dtype != np.uint32 or ticks.ndim != 1:
+            raise ValueError(f"{variant}: uint32 ticks (n_spikes,) of a variant stored with ticks, got {ticks.dtype} "
+                             f"{ticks.shape}")
+        n_trains = int(g.attrs["n_trains"])
+        if idx.ndim != 1 or idx.size % n_trains or (idx[-1] if idx.size else 0) != ticks.size:
+            raise ValueError(f"{variant}: {idx.size} row ends for {n_trains} trains a trial ending at "
+                             f"{idx[-1] if idx.size else 0}, not at the {ticks.size} ticks")
+        scale = self._scale(idx, n_trains, time_scale)
+        self._store_ticks(variant, None if g.attrs.get("ticks_from") is not None else ticks, idx, ticks.size, scale)
+        self._target.check()  # a full disk ends the write here, in one line
+
+    @staticmethod
+    def _scale(idx: np.ndarray, n_trains: int, time_scale: Any) -> np.ndarray:
+        """The per-trial ``time_scale`` (n_trials,) of rows ``idx``."""
+        return np.broadcast_to(np.asarray(1.0 if time_scale is None else time_scale, np.float64),
+                               (idx.size // n_trains,))
+
+    def _store_ticks(self, variant: str, ticks: np.ndarray | None, idx: np.ndarray, n_spikes: int,
+                     scale: np.ndarray) -> None:
+        """Append a batch's ``ticks`` and row ends (None: a ``ticks_from`` variant, whose ``n_spikes`` must be its
+        base's in this batch) and its per-trial ``scale``."""
+        g = self._spikes[variant]
+        ticks_from = g.attrs.get("ticks_from")
+        if ticks is None:
+            if self._batch_spikes.get(str(ticks_from)) != n_spikes:
+                raise ValueError(f"{variant}: {n_spikes} spikes in this batch, {ticks_from} had "
+                                 f"{self._batch_spikes.get(str(ticks_from))}: not the same trains")
+        else:
+            base = self._append(g["spike_ticks"], ticks)
+            self._append(g["spike_times_index"], idx + base)
+            self._batch_spikes[variant] = n_spikes
         self._append(g["time_scale"], np.ascontiguousarray(scale))
-        self._batch_spikes[variant] = st.size
 
     # -- finish --------------------------------------------------------------------------------------------------
     def check(self) -> None:

@@ -169,6 +169,50 @@ def test_spike_ticks_refusals(tmp_path):
             w.append_spikes("speed_scaled", _tick_trains(np.random.default_rng(4), 2, 4), 0.5)
 
 
+def test_appended_ticks_store_what_appended_times_store(tmp_path):
+    """``append_spike_ticks`` (the encoder's ticks of SA and RA joined, ``SpikeTrains.hstack_ticks``) writes the
+    datasets ``append_spikes`` writes from the joined times, a speed-scaled twin's scale included; refusals."""
+    rng = np.random.default_rng(6)
+    parts = [(_tick_trains(rng, 3, 2), _tick_trains(rng, 3, 2)), (_tick_trains(rng, 2, 2), _tick_trains(rng, 2, 2))]
+    coef = [np.array([0.5, 1.0 / 3.0, 1.25]), np.array([0.7, 2.0 / 3.0])]
+    for how in ("times", "ticks"):
+        with EncodedWriter(tmp_path / f"{how}.h5", layout=LAYOUT, textures=TEXTURES, trials=_trials()) as w:
+            w.add_spikes("original", 4, tick_s=1e-3)
+            w.add_spikes("speed_scaled", 4, ticks_from="original")
+            for (sa, ra), c in zip(parts, coef):
+                if how == "times":
+                    w.append_spikes("original", SpikeTrains.hstack([sa, ra]))
+                    w.append_spikes("speed_scaled", SpikeTrains.hstack([sa, ra]).scale_times(c), c)
+                else:
+                    ticks, ends = SpikeTrains.hstack_ticks([sa, ra], 1e-3)
+                    w.append_spike_ticks("original", ticks, ends)
+                    w.append_spike_ticks("speed_scaled", ticks, ends, c)
+    with h5py.File(tmp_path / "times.h5", "r") as a, h5py.File(tmp_path / "ticks.h5", "r") as b:
+        for name in ("original/spike_ticks", "original/spike_times_index", "original/time_scale",
+                     "speed_scaled/time_scale"):
+            assert a[f"spikes/{name}"].dtype == b[f"spikes/{name}"].dtype
+            np.testing.assert_array_equal(a[f"spikes/{name}"][()], b[f"spikes/{name}"][()], err_msg=name)
+    sa, ra = parts[0]
+    with pytest.raises(ValueError, match="not multiples of tick_s"):
+        SpikeTrains.hstack_ticks([sa.with_times(sa.spike_times + 2.5e-4), ra], 1e-3)
+    with pytest.raises(ValueError, match="same number of trials"):
+        SpikeTrains.hstack_ticks([sa, parts[1][1]], 1e-3)
+    ticks, ends = SpikeTrains.hstack_ticks([sa, ra], 1e-3)
+    with EncodedWriter(tmp_path / "r.h5", layout=LAYOUT, textures=TEXTURES, trials=_trials()) as w:
+        w.add_spikes("original", 4, tick_s=1e-3)
+        w.add_spikes("speed_scaled", 4, ticks_from="original")
+        w.add_spikes("realtime_speed_scaled", 4)
+        with pytest.raises(ValueError, match="uint32 ticks"):
+            w.append_spike_ticks("original", ticks.astype(np.int64), ends)
+        with pytest.raises(ValueError, match="uint32 ticks"):
+            w.append_spike_ticks("realtime_speed_scaled", ticks, ends)
+        with pytest.raises(ValueError, match="row ends"):
+            w.append_spike_ticks("original", ticks, ends[:-1])
+        w.append_spike_ticks("original", ticks, ends)
+        with pytest.raises(ValueError, match="not the same trains"):
+            w.append_spike_ticks("speed_scaled", ticks[:-1], np.minimum(ends, ticks.size - 1), 0.5)
+
+
 def test_schema_2_float_spike_times_still_open(tmp_path):
     """Schema 2 wrote every variant's times as gzip float64 ``spike_times``: such a file reads as before."""
     rng = np.random.default_rng(5)
