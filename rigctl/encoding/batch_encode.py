@@ -157,10 +157,9 @@ def trains_to_features(sa_by: dict[str, Any], ra: SpikeTrains, lengths, speed_mm
     if n_unscaled is None:
         n_unscaled = windows_for(lengths.max(initial=1) / p.fs_hz, p.window_s)
     n_scaled = p.n_windows_scaled
-    coef = ra_scaled = None
+    coef = None
     if any(i.speed_scaled and not i.realtime for i in info):
         coef = speed_coefficient(speed, p.reference_speed_mm_s)
-        ra_scaled = ra.scale_times(coef)
         if n_scaled is None:
             n_scaled = windows_for(float(np.max(lengths / p.fs_hz * coef, initial=0.0)), p.window_s)
     # the RA trains' window counts, unscaled and speed-scaled: counted once each, before the variants share them
@@ -168,22 +167,21 @@ def trains_to_features(sa_by: dict[str, Any], ra: SpikeTrains, lengths, speed_mm
     if any(not i.realtime and not i.speed_scaled for i in info):
         ra_counts[False] = ra.window_counts(p.window_s, n_unscaled)
     if any(not i.realtime and i.speed_scaled for i in info):
-        ra_counts[True] = ra_scaled.window_counts(p.window_s, n_scaled)  # type: ignore[union-attr,arg-type]  # set above
+        ra_counts[True] = ra.window_counts(p.window_s, n_scaled, coef)  # type: ignore[arg-type]  # set above
     done: dict[str, tuple[np.ndarray, Any]] = {}
 
     def one(v: str, i: Any) -> tuple[np.ndarray, Any]:
         """Variant ``v``'s features and, if stored, its spike trains (None otherwise)."""
         if not i.realtime:
             sa = sa_by[_sa_key(i)]
-            if i.speed_scaled:
-                sa_v, ra_v = sa.scale_times(coef), ra_scaled
-                f = spike_features(sa_v, ra_v, n_windows=n_scaled,  # type: ignore[arg-type]  # set with scaled
-                                   window_s=p.window_s, sr_factor=coef, ra_counts=ra_counts[True])
+            if i.speed_scaled:  # the scaled times counted as made, made only for a stored variant
+                f = spike_features(sa, ra, n_windows=n_scaled,  # type: ignore[arg-type]  # set with coef
+                                   window_s=p.window_s, sr_factor=coef, ra_counts=ra_counts[True], time_scale=coef)
+                parts = [sa.scale_times(coef), ra.scale_times(coef)] if v in store_spikes else []
             else:
-                sa_v, ra_v = sa, ra
-                f = spike_features(sa_v, ra_v, n_windows=n_unscaled, window_s=p.window_s, ra_counts=ra_counts[False])
-            # both set for a stored variant
-            return f, SpikeTrains.hstack([sa_v, ra_v]) if v in store_spikes else None  # type: ignore[list-item]
+                f = spike_features(sa, ra, n_windows=n_unscaled, window_s=p.window_s, ra_counts=ra_counts[False])
+                parts = [sa, ra]
+            return f, SpikeTrains.hstack(parts) if v in store_spikes else None
         sa_rt = sa_by["none"].select_trains(_realtime_taxels(p, n_ch))
         if not i.speed_scaled:
             f = realtime_features_unscaled(sa_rt, lengths / p.fs_hz, n_windows=p.n_windows_realtime,

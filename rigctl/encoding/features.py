@@ -33,7 +33,7 @@ N_WINDOWS_REALTIME = 20
 
 
 def spike_features(sa: SpikeTrains, ra: SpikeTrains | None, *, n_windows: int, window_s: float = WINDOW_S,
-                   sr_factor=None, ra_counts: np.ndarray | None = None) -> np.ndarray:
+                   sr_factor=None, ra_counts: np.ndarray | None = None, time_scale=None) -> np.ndarray:
     """SR of the SA trains and SC of the RA trains per window, flattened per trial.
 
     Parameters
@@ -46,6 +46,8 @@ def spike_features(sa: SpikeTrains, ra: SpikeTrains | None, *, n_windows: int, w
         speed-scaled variants; 1 otherwise).
     ra_counts : ``ra.window_counts(window_s, n_windows)`` when already counted ((n_trials, n_ra, n_windows); the
         encoder's variants share one RA train, unscaled or speed-scaled), else None (counted here).
+    time_scale : None, or scalar or (n_trials,): the trains' times are those of ``sa.scale_times(time_scale)``
+        (and ``ra``'s, unless ``ra_counts`` is given): eq. 2's scaling, counted without the scaled copies.
 
     Returns
     -------
@@ -56,14 +58,14 @@ def spike_features(sa: SpikeTrains, ra: SpikeTrains | None, *, n_windows: int, w
     ValueError
         if ``sa`` and ``ra`` have different trial counts.
     """
-    sr = sa.window_counts(window_s, n_windows) / window_s
+    sr = sa.window_counts(window_s, n_windows, time_scale) / window_s
     if sr_factor is not None:
         sr *= np.broadcast_to(np.asarray(sr_factor, np.float64), (sa.n_trials,))[:, None, None]
     parts = [sr.reshape(sa.n_trials, -1)]
     if ra is not None:
         if ra.n_trials != sa.n_trials:
             raise ValueError("sa and ra must have the same number of trials")
-        counts = ra.window_counts(window_s, n_windows) if ra_counts is None else ra_counts
+        counts = ra.window_counts(window_s, n_windows, time_scale) if ra_counts is None else ra_counts
         parts.append(counts.reshape(ra.n_trials, -1))
     return np.concatenate(parts, axis=1).astype(np.float32)
 

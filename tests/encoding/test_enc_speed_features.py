@@ -148,3 +148,8 @@ def test_window_counts_bin_each_spike_by_its_window():
                     want[i, j, w] += 1
     np.testing.assert_array_equal(got, want)
     assert got[:, :, 3].sum() >= sum(1 for row in lists for times in row if times.size)  # 0.3 s: window 3, not 2
+    # a time scale counts the times scale_times makes (eq. 2, per trial), without making them
+    coef = rng.choice([0.5, 1 / 3, 2 / 3, 1.25], 40)
+    np.testing.assert_array_equal(st.window_counts(window_s, n_windows, coef),
+                                  st.scale_times(coef).window_counts(window_s, n_windows))
+    np.testing.assert_array_equal(st.window_counts(window_s, n_windows, 1.0), got)
