@@ -112,7 +112,7 @@ def _encode_trains(rg: Ragged, offset: Any, scale: Any, coeffs: Any, coeffs_labe
         sa_by["force"] = sas[1]
     if need_lf:
         sa_by["lf"] = sas[-1]
-    return sa_by, ra  # type: ignore[return-value]  # ra: run_fused was asked for it
+    return sa_by, ra
 
 
 def _sa_key(info: Any) -> str:

@@ -753,7 +753,8 @@ def _encode_pass(writer: EncodedWriter, run: EncodeRun, p: EncodeParams, read: _
             writer.write_features(v, int(batch[0]), f)
         for v in run.store_spikes:  # bases before their speed-scaled twins
             if isinstance(spikes[v], tuple):  # (ticks, row ends): _encode_read
-                writer.append_spike_ticks(v, *spikes[v], _time_scale(v, speed[batch], p))
+                ticks, ends = spikes[v]
+                writer.append_spike_ticks(v, ticks, ends, _time_scale(v, speed[batch], p))
             else:
                 writer.append_spikes(v, spikes[v], _time_scale(v, speed[batch], p))
 
@@ -768,29 +769,35 @@ def _encode_pass(writer: EncodedWriter, run: EncodeRun, p: EncodeParams, read: _
         with contextlib.ExitStack() as stack:
             s = None if read.keep_all else stack.enter_context(open_session(run.session_path))
 
-            def encode(bi: int, b: np.ndarray, a: tuple[Any, ...]) -> Any:
+            def load(bi: int) -> tuple[Any, Any]:
+                """Batch ``bi``'s model input and window speeds."""
                 if s is None:  # read in the range pass
-                    rg, ws = read.kept[bi]
-                    read.kept[bi] = None  # freed as soon as encoded
-                else:  # read again (the file stays open: one header read for the whole pass)
-                    blk = _cropped(s.read_taxels(a[1], traces=want_ws), p.crop_s, read.conv.input_rate_hz)
-                    rg, ws = _model_input(blk, a[1], speed[b], want_ws, p.window_s, read.conv)
-                    del blk
+                    rg_ws, read.kept[bi] = read.kept[bi], None  # freed as soon as encoded
+                    return rg_ws
+                ids_b = args[bi][1]  # read again (the file stays open: one header read for the whole pass)
+                blk = _cropped(s.read_taxels(ids_b, traces=want_ws), p.crop_s, read.conv.input_rate_hz)
+                return _model_input(blk, ids_b, speed[read.batches[bi]], want_ws, p.window_s, read.conv)
+
+            def encode(loaded: Future[tuple[Any, Any]], a: tuple[Any, ...]) -> Any:
+                rg, ws = loaded.result()
                 return _encode_read(rg, ws, *a[2:])
 
-            # one batch ahead: a worker thread reads and encodes batch i + 1 (the kernels release the GIL) while
-            # this thread writes batch i, so the writes' serial time overlaps the kernels' instead of adding to it
+            # a reader thread reads batch i + 1 while a worker thread encodes batch i (the kernels release the GIL)
+            # and this thread writes batch i - 1: the reads' and the writes' serial time overlap the kernels'
+            reader = stack.enter_context(ThreadPoolExecutor(1, thread_name_prefix="rigctl-read"))
             pool = stack.enter_context(ThreadPoolExecutor(1, thread_name_prefix="rigctl-encode"))
             ahead: deque[tuple[np.ndarray, Future[Any]]] = deque()
+            nxt: Future[tuple[Any, Any]] | None = reader.submit(load, 0) if read.batches else None
             try:
                 for bi, (b, a) in enumerate(zip(read.batches, args)):
-                    ahead.append((b, pool.submit(encode, bi, b, a)))
+                    cur, nxt = nxt, reader.submit(load, bi + 1) if bi + 1 < len(read.batches) else None
+                    ahead.append((b, pool.submit(encode, cur, a)))  # type: ignore[arg-type]  # set for every batch
                     while len(ahead) > (1 if bi + 1 < len(read.batches) else 0):
                         done_b, fut = ahead.popleft()
                         write(done_b, fut.result())
                         bar.advance(len(done_b))
             finally:
-                for _, fut in ahead:
+                for fut in [f for _, f in ahead] + ([nxt] if nxt is not None else []):
                     fut.cancel()
         return
     from dask.distributed import as_completed
