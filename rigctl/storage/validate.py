@@ -61,6 +61,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from rigctl.core.buffers import zeroed
 from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.storage.onboard_group import onboard_samples
 from rigctl.storage.outputs import size_text
@@ -151,7 +152,7 @@ class KeptTaxels:
             if not group or group in self._groups or not all(t in index and t not in self._where for t in group):
                 continue
             starts = np.concatenate([[0], np.cumsum([int(index[t]["n_samples"]) for t in group])]).astype(np.int64)
-            self._groups[group] = (np.empty((int(starts[-1]), n_ch), dtype=np.uint16), starts, [False] * len(group))
+            self._groups[group] = (zeroed((int(starts[-1]), n_ch), np.uint16), starts, [False] * len(group))
             self._where.update((t, (group, i)) for i, t in enumerate(group))
 
     def take(self, tid: int, taxels: np.ndarray) -> None:
