@@ -30,6 +30,9 @@ from rigctl.storage.encoded_format import (
 )
 from rigctl.storage.outputs import output_file
 
+#: each dataset's chunk cache while writing (bytes): a few spike-ticks chunks (1 MB) or a features chunk (256 rows)
+_CHUNK_CACHE_BYTES = 4 << 20
+
 
 class EncodedWriter:
     """Writes one encoded file (the layout in the module docstring), under ``<name>.part`` until :meth:`close`
@@ -66,7 +69,10 @@ class EncodedWriter:
         self._target = self._output.__enter__()
         self.part = self._target.part
         try:
-            self._f = h5py.File(self._target.h5_file(), "w")
+            # a chunk cache per dataset above one spike-ticks chunk (1 MB, HDF5's default cache size, which holds
+            # no chunk that large): a batch's last, partial chunk stays in memory for the next batch's append
+            # instead of being written, read back and written again
+            self._f = h5py.File(self._target.h5_file(), "w", rdcc_nbytes=_CHUNK_CACHE_BYTES)
         except BaseException:
             self._output.__exit__(*sys.exc_info())
             raise
