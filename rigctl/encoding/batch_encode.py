@@ -207,3 +207,30 @@ def trains_to_features(sa_by: dict[str, Any], ra: SpikeTrains, lengths, speed_mm
     feats = {v: done[v][0] for v in variants}
     spikes = {v: done[v][1] for v in variants if done[v][1] is not None}
     return feats, spikes
+
+
+def _encode_read(rg, ws, speed, coeffs, coeffs_lf, offset, scale, variants, store_spikes, params):
+    """Encode and featurise a batch already read (the model input ``rg`` and window speeds ``ws``): what
+    :func:`encode_batch` gives, except that a variant the file stores as ticks (:func:`_tick_source`) gets the
+    (ticks, row ends) of its unscaled trains (:meth:`SpikeTrains.hstack_ticks`, made once for a base and its
+    speed-scaled twin) instead of its SpikeTrains: the same numbers in the file, without the float64 copies."""
+    sa_by, ra = _encode_trains(rg, offset, scale, coeffs, coeffs_lf, variants, params)
+    floats = [v for v in store_spikes if _tick_source(v, store_spikes) is None]
+    feats, spikes = trains_to_features(sa_by, ra, rg.lengths, np.asarray(speed, np.float64), variants=variants,
+                                       params=params, window_speed=ws, store_spikes=floats)
+    ticks: dict[str, Any] = {}
+    for v in store_spikes:
+        src = _tick_source(v, store_spikes)
+        if src is not None:
+            if src not in ticks:
+                ticks[src] = SpikeTrains.hstack_ticks([sa_by[_sa_key(VARIANTS[src])], ra], 1.0 / float(params.fs_hz))
+            spikes[v] = ticks[src]
+    return feats, spikes
+
+
+def _tick_source(variant: str, stored) -> str | None:
+    """The unscaled variant whose ticks a variant stored with ticks holds (:func:`rigctl.encoding.pipeline._add_spike_tables`): itself, or
+    for a speed-scaled one its base when that is stored too; None for a variant stored otherwise (real-time: float64
+    times; speed-scaled without its base: its own ticks from its scaled times)."""
+    base = _unscaled_twin(variant)
+    return base if base is not None and (base == variant or base in stored) else None

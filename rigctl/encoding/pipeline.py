@@ -74,10 +74,9 @@ from rigctl.core.progress import ProgressCallback, Stage, note as progress_note
 from rigctl.core.provenance import PROVENANCE_ATTR, provenance_json, software_provenance
 from rigctl.core.sensor import SensorLayout
 from rigctl.encoding.batch_encode import (
-    _encode_trains,
+    _encode_read,
     _realtime_taxels,
-    _sa_key,
-    _unscaled_twin,
+    _tick_source,
     encode_batch,
     trains_to_features,
 )
@@ -93,7 +92,6 @@ from rigctl.encoding.speed import (
     speed_coefficient,
     window_speeds,
 )
-from rigctl.encoding.spikes import SpikeTrains
 from rigctl.storage.encoded import ALL_VARIANTS, MAIN_VARIANTS, VARIANTS, EncodedWriter
 from rigctl.storage.outputs import check_output
 
@@ -166,33 +164,6 @@ def _batch_task(session_path, ids, speed, coeffs, coeffs_lf, offset, scale, vari
         RateConversion(params.fs_hz, params.fs_hz)
     rg, ws = _read_batch(session_path, ids, speed, want_ws, params.window_s, conv, params.crop_s)
     return _encode_read(rg, ws, speed, coeffs, coeffs_lf, offset, scale, variants, store_spikes, params)
-
-
-def _encode_read(rg, ws, speed, coeffs, coeffs_lf, offset, scale, variants, store_spikes, params):
-    """Encode and featurise a batch already read (the model input ``rg`` and window speeds ``ws``): what
-    :func:`encode_batch` gives, except that a variant the file stores as ticks (:func:`_tick_source`) gets the
-    (ticks, row ends) of its unscaled trains (:meth:`SpikeTrains.hstack_ticks`, made once for a base and its
-    speed-scaled twin) instead of its SpikeTrains: the same numbers in the file, without the float64 copies."""
-    sa_by, ra = _encode_trains(rg, offset, scale, coeffs, coeffs_lf, variants, params)
-    floats = [v for v in store_spikes if _tick_source(v, store_spikes) is None]
-    feats, spikes = trains_to_features(sa_by, ra, rg.lengths, np.asarray(speed, np.float64), variants=variants,
-                                       params=params, window_speed=ws, store_spikes=floats)
-    ticks: dict[str, Any] = {}
-    for v in store_spikes:
-        src = _tick_source(v, store_spikes)
-        if src is not None:
-            if src not in ticks:
-                ticks[src] = SpikeTrains.hstack_ticks([sa_by[_sa_key(VARIANTS[src])], ra], 1.0 / float(params.fs_hz))
-            spikes[v] = ticks[src]
-    return feats, spikes
-
-
-def _tick_source(variant: str, stored) -> str | None:
-    """The unscaled variant whose ticks a variant stored with ticks holds (:func:`_add_spike_tables`): itself, or
-    for a speed-scaled one its base when that is stored too; None for a variant stored otherwise (real-time: float64
-    times; speed-scaled without its base: its own ticks from its scaled times)."""
-    base = _unscaled_twin(variant)
-    return base if base is not None and (base == variant or base in stored) else None
 
 
 # ---------------------------------------------------------------------------------------------------------- session
