@@ -12,9 +12,9 @@ MB: 0.4 CPU-s with numpy's arrays, 2.1 on base pages).
 from __future__ import annotations
 
 import mmap
-from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 __all__ = ["zeroed"]
 
@@ -22,7 +22,7 @@ __all__ = ["zeroed"]
 _MAPPED_BYTES = 4 << 20
 
 
-def zeroed(shape: int | tuple[int, ...], dtype: Any) -> np.ndarray:
+def zeroed(shape: int | tuple[int, ...], dtype: npt.DTypeLike) -> np.ndarray:
     """A zero-filled C-contiguous array of ``shape`` and ``dtype`` (as ``np.zeros``), on base pages when it is
     :data:`_MAPPED_BYTES` or larger (an anonymous memory mapping, freed with the last array viewing it).
 
