@@ -293,11 +293,13 @@ def _wait_released(path: Path, timeout_s: float = 30.0) -> bool:
     return _wait(free, timeout_s)
 
 
+#: each run is killed this long after its start (s, drawn uniformly): shorter than a session, or no run is killed
+KILL_AFTER_S = (1.0, 10.0)
 KILL_GRACE_S = 120.0  # how long past its length a soak's kill -9 part may go on for its first kill and session
 
 
 def kill_soak(stop_at: float, seed: int, work: Path, out: dict, protocol: str = KILL_PROTOCOL,
-              rigctl: Sequence[str] = RIGCTL) -> None:
+              rigctl: Sequence[str] = RIGCTL, kill_after_s: tuple[float, float] = KILL_AFTER_S) -> None:
     rng = random.Random(seed + 2)
     f = out.setdefault("kill", dict(kills=0, sessions_completed=0, trials_finished=0, finished_trials_lost=0,
                                     finished_trials_changed=0, duplicates=0, unreadable_after_kill=0,
@@ -327,7 +329,7 @@ def kill_soak(stop_at: float, seed: int, work: Path, out: dict, protocol: str = 
             proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
             kill = go_on_killing()  # the last run of the soak is let finish
             try:
-                proc.wait(timeout=rng.uniform(1.0, 10.0) if kill else 300)
+                proc.wait(timeout=rng.uniform(*kill_after_s) if kill else 300)
             except subprocess.TimeoutExpired:
                 os.kill(proc.pid, signal.SIGKILL)
                 proc.wait()
@@ -376,12 +378,13 @@ MUST_BE_ZERO = [("taxel", "silent_losses"), ("taxel", "bad_frames_recorded"), ("
 
 
 def run(minutes: float, seed: int, work: Path, *, kill_protocol: str = KILL_PROTOCOL,
-        rigctl: Sequence[str] = RIGCTL) -> dict:
+        rigctl: Sequence[str] = RIGCTL, kill_after_s: tuple[float, float] = KILL_AFTER_S) -> dict:
     """Run the three parts side by side for ``minutes``; returns the figures (``errors``: parts that crashed).
     ``kill_protocol``: the protocol (TOML text) the kill -9 part records again and again; the last session of the
     soak runs to its end after ``minutes``, so a short soak gives a short one. ``rigctl``: the argv prefix of the
     ``rigctl`` command the kill -9 part runs and kills (a fresh interpreter; the tests give their preloaded one,
-    tests/launcher.py, whose client's death kills its command with SIGKILL)."""
+    tests/launcher.py, whose client's death kills its command with SIGKILL). ``kill_after_s``: the range each run's
+    kill is drawn from (s after its start; keep it shorter than one session of ``kill_protocol``)."""
     stop_at = time.monotonic() + minutes * 60
     out: dict = {"minutes": minutes, "seed": seed, "errors": []}
     t0 = time.time()
@@ -394,7 +397,7 @@ def run(minutes: float, seed: int, work: Path, *, kill_protocol: str = KILL_PROT
             out["errors"].append(f"{fn.__name__}: {traceback.format_exc()}")
 
     threads = [threading.Thread(target=part, args=(fn, fn.__name__, *args), daemon=True)
-               for fn, args in ((taxel_soak, ()), (modbus_soak, ()), (kill_soak, (kill_protocol, rigctl)))]
+               for fn, args in ((taxel_soak, ()), (modbus_soak, ()), (kill_soak, (kill_protocol, rigctl, kill_after_s)))]
     for t in threads:
         t.start()
     for t in threads:

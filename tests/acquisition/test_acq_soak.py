@@ -22,8 +22,10 @@ def test_a_short_soak_loses_nothing(tmp_path):
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     # the kill -9 part on one texture (4 trials a session, not 12): the session left running at the end is short
+    # (each run killed 1-4 s after its start: a one-texture session takes ~6 s with the preloaded rigctl, and the
+    # benchmark's 1-10 s let whole sessions end unkilled, six in a row in one idle run)
     out = bench.run(0.25, seed=3, work=tmp_path, kill_protocol=bench.KILL_PROTOCOL.replace('["A", "B", "C"]', '["A"]'),
-                    rigctl=RIGCTL)
+                    rigctl=RIGCTL, kill_after_s=(1.0, 4.0))
     assert out["failures"] == [], out
     taxel, modbus, kill = out["taxel"], out["modbus"], out["kill"]
     # the faults really happened and were survived
