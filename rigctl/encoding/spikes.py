@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from rigctl.core.encoding_model import SPIKE_TICK_RTOL
+
 __all__ = ["SpikeTrains"]
 
 
@@ -50,16 +52,16 @@ def _gather(times, starts, lengths, ends, out):  # pragma: no cover - compiled b
 
 
 @numba.njit(cache=True, nogil=True)
-def _gather_ticks(times, starts, lengths, ends, tick_s, out):  # pragma: no cover - compiled by numba
+def _gather_ticks(times, starts, lengths, ends, tick_s, rtol, out):  # pragma: no cover - compiled by numba
     """:func:`_gather` into uint32 ticks of ``tick_s``: ``out[...] = rint(t / tick_s)``; False (the rest of ``out``
-    unset) at the first time off the tick grid (``|ticks * tick_s - t| > 1e-12 |t|``) or outside uint32's range."""
+    unset) at the first time off the tick grid (``|ticks * tick_s - t| > rtol |t|``) or outside uint32's range."""
     for r in range(starts.size):
         o = ends[r] - lengths[r]
         s = starts[r]
         for i in range(lengths[r]):
             t = times[s + i]
             k = np.rint(t / tick_s)
-            if not (k >= 0.0 and k <= 4294967295.0 and abs(k * tick_s - t) <= 1e-12 * abs(t)):
+            if not (k >= 0.0 and k <= 4294967295.0 and abs(k * tick_s - t) <= rtol * abs(t)):
                 return False
             out[o + i] = np.uint32(k)
     return True
@@ -230,7 +232,8 @@ class SpikeTrains:
         Raises
         ------
         ValueError
-            if the parts' trial counts differ, or a time is not a multiple of ``tick_s`` (within 1e-12 relative)
+            if the parts' trial counts differ, or a time is not a multiple of ``tick_s`` (within
+            :data:`~rigctl.core.encoding_model.SPIKE_TICK_RTOL` relative)
             or its tick is outside uint32's range.
         """
         n_trials = parts[0].n_trials
@@ -243,7 +246,8 @@ class SpikeTrains:
         for p in parts:  # part p's rows land in the joined columns col .. col + p.n_trains - 1 of every trial
             rows = (np.arange(n_trials)[:, None] * counts.shape[1] + col + np.arange(p.n_trains)[None, :]).ravel()
             lengths = np.diff(p.spike_times_index, prepend=0)
-            if not _gather_ticks(p.spike_times, p.row_starts, lengths, ends[rows], float(tick_s), out):
+            if not _gather_ticks(p.spike_times, p.row_starts, lengths, ends[rows], float(tick_s),
+                                 SPIKE_TICK_RTOL, out):
                 raise ValueError(f"spike times are not multiples of tick_s = {tick_s:g} s")
             col += p.n_trains
         return out, ends

@@ -14,6 +14,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from rigctl.core.encoding_model import SPIKE_TICK_RTOL
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
 from rigctl.storage.encoded_format import (
@@ -361,9 +362,10 @@ class EncodedWriter:
 
 
 def _on_grid(back: np.ndarray, times: np.ndarray) -> bool:
-    """Every ``back`` (ticks x tick_s x scale) within 1e-12 of ``times`` relative (``np.allclose(back, times,
-    rtol=1e-12, atol=0)`` for the finite times spikes have; NaN fails), in place on one temporary."""
+    """Every ``back`` (ticks x tick_s x scale) within :data:`~rigctl.core.encoding_model.SPIKE_TICK_RTOL` of
+    ``times`` relative (``np.allclose(back, times, rtol=SPIKE_TICK_RTOL, atol=0)`` for the finite times spikes have;
+    NaN fails), in place on one temporary."""
     np.subtract(back, times, out=back)
     np.abs(back, out=back)
-    return bool(np.all(back <= 1e-12 * np.abs(times)))
+    return bool(np.all(back <= SPIKE_TICK_RTOL * np.abs(times)))
 
