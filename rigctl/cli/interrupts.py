@@ -66,8 +66,12 @@ def keep_ctrl_c() -> None:
         if unraisable.exc_type is None or not issubclass(unraisable.exc_type, KeyboardInterrupt):
             previous(unraisable)
             return
-        caller = sys._getframe(1)  # the Python code that called the C code whose callback swallowed the interrupt
-        if threading.current_thread() is threading.main_thread() and caller is not None:
+        try:  # the Python code that called the C code whose callback swallowed the interrupt
+            caller = sys._getframe(1)
+        except ValueError:  # none: the hook was called from C alone
+            _redeliver_later()
+            return
+        if threading.current_thread() is threading.main_thread():
             _raise_on_return_to(caller)
         else:
             _redeliver_later()
