@@ -309,8 +309,8 @@ def kill_soak(stop_at: float, seed: int, work: Path, out: dict, protocol: str = 
     tmp = work / "tmp"  # the commands' temporary folder: every port folder left in it at the end is a leftover
     tmp.mkdir()
     env = dict(os.environ, RIGCTL_CONFIG=str(work / "rig.json"), TMPDIR=str(tmp))
-    # a short soak on a busy machine may end before it has killed one run that had made its simulated rig (the first
-    # kill comes 1-10 s after a start that can take seconds) or before a session ran to its end: it goes on, at most
+    # a short soak on a busy machine may end before it has killed one run that had made its simulated rig (each kill
+    # is drawn from kill_after_s after a start that can take seconds) or before a session ran to its end: it goes on, at most
     # KILL_GRACE_S past its length, until it has both (a soak that never gets them fails on its figures, not a hang)
     grace_until = stop_at + KILL_GRACE_S
 
