@@ -180,6 +180,14 @@ class _InThread:
         self.thread.join(30)
 
 
+def _the_run(events: list[dict], rid: str) -> list[dict]:
+    """``events`` (one stream's) from the run ``rid``'s first event through its ``done``, the rig's events between
+    them included."""
+    ours = [k for k, e in enumerate(events) if e.get("id") == rid]
+    done = next(k for k in ours if events[k].get("state") == "done")
+    return events[ours[0]:done + 1]
+
+
 def test_event_streams_beyond_the_cap_are_429_and_the_open_ones_deliver_events(tmp_path):
     import httpx
 
@@ -207,7 +215,11 @@ def test_event_streams_beyond_the_cap_are_429_and_the_open_ones_deliver_events(t
                     kinds = [(e["type"], e.get("kind") or e.get("state")) for e in got if e.get("id") == rid]
                     assert ("run", "running") in kinds and ("trial", "complete") in kinds, kinds
                     assert kinds[-1] == ("run", "done") and any(t == "progress" for t, _ in kinds), kinds
-                assert feeds.events[0] == feeds.events[1] == feeds.events[2]
+                # each stream delivers the same events in the same order, from the run's first to its end: what
+                # follows the run's end (the drum controller going IDLE) may still be on its way to one of them (a
+                # loaded CI run compared the whole lists while the last event was still on its way to two feeds)
+                runs = [_the_run(list(got), rid) for got in feeds.events]
+                assert runs[0] == runs[1] == runs[2]
                 assert client.post("/stop", json={}).json()["held"] is True
                 assert feeds.ended.wait(30)  # each stream got STOP and its client closed it: their places free
                 wait_for(lambda: app.state.events.clients == 0, timeout_s=30, every_s=0.02)
