@@ -215,12 +215,12 @@ def _encode_read(rg, ws, speed, coeffs, coeffs_lf, offset, scale, variants, stor
     (ticks, row ends) of its unscaled trains (:meth:`SpikeTrains.hstack_ticks`, made once for a base and its
     speed-scaled twin) instead of its SpikeTrains: the same numbers in the file, without the float64 copies."""
     sa_by, ra = _encode_trains(rg, offset, scale, coeffs, coeffs_lf, variants, params)
-    floats = [v for v in store_spikes if _tick_source(v, store_spikes) is None]
+    sources = {v: _tick_source(v, store_spikes) for v in store_spikes}
     feats, spikes = trains_to_features(sa_by, ra, rg.lengths, np.asarray(speed, np.float64), variants=variants,
-                                       params=params, window_speed=ws, store_spikes=floats)
+                                       params=params, window_speed=ws,
+                                       store_spikes=[v for v, src in sources.items() if src is None])
     ticks: dict[str, Any] = {}
-    for v in store_spikes:
-        src = _tick_source(v, store_spikes)
+    for v, src in sources.items():
         if src is not None:
             if src not in ticks:
                 ticks[src] = SpikeTrains.hstack_ticks([sa_by[_sa_key(VARIANTS[src])], ra], 1.0 / float(params.fs_hz))
