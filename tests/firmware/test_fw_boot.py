@@ -61,6 +61,7 @@ def test_the_stk500v2_window_is_measured_and_a_host_sending_at_once_is_trapped(m
     deadline = rig.clock.now() + 10.0
     while len(rig.boot_times_s) == n:
         assert rig.clock.now() < deadline, "the bootloader never started the sketch after the host went quiet"
+        rig.clock.sleep(0.05)
     assert rig.boot_times_s[-1] > 4.0  # trapped for the programming-mode timeout, not the 0.83 s window
     # a quiet open: the window alone, as measured on the bootloader's own loop
     with _client(rig) as drum:
