@@ -25,6 +25,7 @@ seeded from ``(seed, trial_id)``, so a dataset is reproducible whatever the numb
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import math
@@ -43,6 +44,7 @@ from rigctl.core.provenance import software_provenance
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.core.trial import TrialData
+from rigctl.core.worker_signals import ctrl_c_held
 from rigctl.simulation.model import RigConfig, SensorModel
 from rigctl.simulation.noise import one_pole
 from rigctl.simulation.textures import Texture, get_texture
@@ -499,10 +501,11 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
         max_samples = max(int(round(r[4] * rate_hz)) for r in rows) + 2
         ctx = _pool_context()  # (before the progress bar, whose tqdm starts a thread)
         with TrialSlots(max_samples, n_blocks=max(3 * n_workers, SLOT_BLOCKS), block=WORKER_CHUNK,
-                        layout=layout) as slots, \
-                ctx.Pool(n_workers, initializer=init_worker_slots,
-                         initargs=(*slots.initargs, _render_planned, _init_worker,
-                                   (cfg.to_dict(), seed, textures_arg), _prepare)) as pool:
+                        layout=layout) as slots, contextlib.ExitStack() as stack:
+            with ctrl_c_held():  # a Ctrl-C while the workers start is this process's, not a worker's traceback
+                pool = stack.enter_context(ctx.Pool(n_workers, initializer=init_worker_slots,
+                                                    initargs=(*slots.initargs, _render_planned, _init_worker,
+                                                              (cfg.to_dict(), seed, textures_arg), _prepare)))
             bar = Stage(progress, f"dataset {out_path.name}", len(rows))
             consume(slots.results(pool, rows), bar)
 

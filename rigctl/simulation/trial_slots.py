@@ -29,6 +29,7 @@ import numpy as np
 
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.trial import TrialData
+from rigctl.core.worker_signals import worker_ignores_ctrl_c
 
 _STATE: dict = {}
 
@@ -57,9 +58,7 @@ def init_worker_slots(path: str, n_slots: int, slot_samples: int, n_channels: in
     ``path, n_slots, slot_samples, n_channels`` are :attr:`TrialSlots.initargs`. ``prepare``: called in the worker
     with each rendered trial as the writer will see it (its per-sample arrays the slot's), its result handed over
     with the trial (picklable; None without ``prepare``)."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it stops the pool, no worker traceback
+    worker_ignores_ctrl_c()  # Ctrl-C is the parent's: it stops the pool, no worker traceback (rigctl.core.worker_signals)
     size = n_slots * slot_samples * sample_bytes(n_channels)
     # a plain ndarray over the map (its views then skip np.memmap's Python __array_finalize__: ~24 us a trial)
     _STATE.update(mm=np.memmap(path, dtype=np.uint8, mode="r+", shape=(size,)).view(np.ndarray),
