@@ -4,7 +4,7 @@ A terminal's Ctrl-C sends SIGINT to the whole foreground process group, a pool's
 ignores it from its first instruction leaves the command to stop the pool and say one line; a worker that is still
 starting when it lands (forked, not yet at its initializer) raises KeyboardInterrupt there and prints ``Process
 ForkPoolWorker-N:`` and a traceback beside the command's line (tests/core/test_core_worker_signals.py shows it; on a
-loaded machine a worker of ``rigctl sim dataset`` can take seconds to reach its initializer). So the pool is made
+loaded machine a worker of ``rigctl sim dataset`` may be slow to reach its initializer). So the pool is made
 with SIGINT blocked (:func:`ctrl_c_held`): its workers start with it blocked, ignore it
 (:func:`worker_ignores_ctrl_c`, their initializer's first step) and only then unblock it, which drops one that came
 meanwhile; the command keeps its own pending and takes it when the block ends. POSIX: a fork's child inherits the
