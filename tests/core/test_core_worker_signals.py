@@ -36,7 +36,9 @@ try:
         print("worker", pool.apply_async(os.getpid).get(timeout=60) > 0, "command took it", taken, flush=True)
     else:  # the first worker ends at its initializer (the pool's own list of its processes)
         first = pool._pool[0]
-        first.join(60)
+        deadline = time.monotonic() + 60
+        while first.exitcode is None and time.monotonic() < deadline:  # (not join: the pool's thread reaps it too)
+            time.sleep(0.01)
         print("first worker ended", first.exitcode, flush=True)
 finally:
     pool.terminate()
