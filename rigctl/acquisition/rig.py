@@ -31,7 +31,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
@@ -65,6 +65,7 @@ from rigctl.core.drum import (
     DrumReset,
     DrumState,
     DrumTimeout,
+    DrumWaitAborted,
     Fault,
     ForceLoopConfig,
     SpeedProfile,
@@ -431,7 +432,8 @@ class Rig:
         """HOME (the controller tares at the home switch), wait for IDLE, TARE again at home, and remember the
         controller's BOOT_COUNT: a later change of it is an unexpected reset (:meth:`check_drum_reset`)."""
         self.drum.home()
-        st = self.drum.wait_state([DrumState.IDLE], timeout_s=30.0)
+        wait_homed = getattr(self.drum, "wait_homed", None)  # (a STOP during HOME ends the wait: NOT_HOMED again)
+        st = wait_homed(30.0) if wait_homed is not None else self.drum.wait_state([DrumState.IDLE], timeout_s=30.0)
         self.drum.tare()
         self.homed_once = True
         self.drum_boot_count = getattr(self.drum.read_status(), "boot_count", getattr(st, "boot_count", None))
@@ -864,8 +866,24 @@ class Rig:
         waiting: within :data:`SETTLE_POLL_S`).
         """
         force_g = PROTOCOL_LIMITS.force_range().check(force_g)
-        with self.latching("PRESS"):
+        with self.latching("PRESS"), self._waits_end_at(stop_event):
             return self._press(force_g, self.settle.force_timeout_s if timeout_s is None else timeout_s, stop_event)
+
+    @contextlib.contextmanager
+    def _waits_end_at(self, stop_event: StopFlag | None) -> Iterator[None]:
+        """Within the block, the drum client's waits in this thread end at ``stop_event`` (TrialAborted) rather than
+        at their timeouts (:meth:`rigctl.devices.drum.DrumClient.aborting_waits`): a STOP during the first trial's
+        HOME left the controller NOT_HOMED and the run waiting 30 s for IDLE (seen as 30 s of the rig's clock
+        between STOP and STOPPED in a loaded CI run's GUI test)."""
+        aborting = getattr(self.drum, "aborting_waits", None)
+        if stop_event is None or aborting is None:
+            yield
+            return
+        try:
+            with aborting(stop_event.is_set):
+                yield
+        except DrumWaitAborted as exc:
+            raise TrialAborted("trial aborted on request") from exc
 
     def _press(self, force_g: float, timeout_s: float, stop_event: StopFlag | None) -> float:
         clock = self.drum.clock  # wall time on a real link, simulated time in-process
@@ -962,7 +980,7 @@ class Rig:
         n = planned.samples_at(self.layout.sample_rate_hz)
         if n <= 0:
             raise ValueError(f"trial {planned.trial_id}: duration {planned.duration_s} s gives no samples")
-        with self._lock, self.latching(f"trial {planned.trial_id}"):
+        with self._lock, self.latching(f"trial {planned.trial_id}"), self._waits_end_at(stop_event):
             try:
                 return self._record(planned, n, stop_event)
             except BaseException:

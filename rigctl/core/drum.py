@@ -38,7 +38,7 @@ __all__ = [
     "STATE_TEXT", "FAULT_WORDS", "ACTUATOR_DIRECTION_CAUSES", "CRUSH_FAULTS", "CRUSH_NOTE",
     "FaultWords", "describe_state", "describe_faults", "fault_advice",
     "PRESSING_G", "HOME_TOLERANCE_MM", "actuator_words", "status_line",
-    "DrumError", "DrumTimeout", "DrumFault", "DrumReset", "SetpointRangeError", "Clock",
+    "DrumError", "DrumTimeout", "DrumWaitAborted", "DrumFault", "DrumReset", "SetpointRangeError", "Clock",
 ]
 
 
@@ -628,6 +628,11 @@ class DrumError(Exception):
 
 class DrumTimeout(DrumError):
     """The drum controller did not answer, or did not reach the awaited state in time."""
+
+
+class DrumWaitAborted(DrumError):
+    """A wait on the drum controller ended early because its caller stopped (a STOP, a Ctrl-C): the state awaited
+    may no longer come at all (HOME stopped leaves NOT_HOMED, never IDLE), and the wait does not run its timeout out."""
 
 
 class DrumFault(DrumError):

@@ -31,12 +31,14 @@ request for a programmer's byte) it stays silent for ``boot_quiet_s`` before the
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
 import stat
 import threading
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -56,6 +58,7 @@ from rigctl.devices.errors import (
     DrumFault,
     DrumNotHomed,
     DrumTimeout,
+    DrumWaitAborted,
     ModbusExceptionError,
     SetpointRangeError,
 )
@@ -335,6 +338,7 @@ class DrumClient:
         self.timeout_s = timeout_s
         self.retries = retries
         self.poll_s = poll_s
+        self._wait_stops: dict[int, Callable[[], bool]] = {}  # thread id -> its stop (aborting_waits)
         self._lock = threading.RLock()
         # a simulated rig's port in this process is on that rig's clock (rigctl.core.shared_clock)
         self.clock = clock or (clock_of_port(port) if transport is None else None) or _WallClock()
@@ -879,9 +883,29 @@ class DrumClient:
             fn(t, status)
         return status
 
+    @contextlib.contextmanager
+    def aborting_waits(self, stop: Callable[[], bool]) -> Iterator[None]:
+        """Within the block, every wait of this client in the calling thread (``wait_state``, ``wait_released``,
+        ``wait_force_settled``, ``wait_speed_steady``, ...) ends with :class:`DrumWaitAborted` at its next poll once
+        ``stop()`` is true, instead of at its timeout: a STOP leaves the controller where the awaited state may never
+        come (HOME stopped: NOT_HOMED, never IDLE; the drum stopped: never at speed), and on a simulated rig a wait
+        run out also runs the world's clock out with it. Other threads' waits are untouched (STOP's own wait for the
+        release among them). Nests (the inner stop applies within the inner block)."""
+        key = threading.get_ident()
+        outer = self._wait_stops.get(key)
+        self._wait_stops[key] = stop
+        try:
+            yield
+        finally:
+            if outer is None:
+                self._wait_stops.pop(key, None)
+            else:
+                self._wait_stops[key] = outer
+
     def _wait(self, done: Any, timeout_s: float, what: str, allow_fault: bool = False) -> DrumStatus:
         clock = self.clock
         deadline = clock.now() + timeout_s
+        stop = self._wait_stops.get(threading.get_ident())
         status = None
         while True:
             status = self.read_status()
@@ -889,6 +913,8 @@ class DrumClient:
                 raise DrumFault(status.faults, f"while waiting for {what}")
             if done(status):
                 return status
+            if stop is not None and stop():
+                raise DrumWaitAborted(f"stopped while waiting for {what} (state {status.state.name})")
             if clock.now() >= deadline:
                 raise DrumTimeout(
                     f"drum controller did not reach {what} within {timeout_s:g} s (state {status.state.name}, "
@@ -901,6 +927,22 @@ class DrumClient:
         states = {DrumState(s) for s in ([states] if isinstance(states, (int, DrumState)) else states)}
         names = "/".join(sorted(s.name for s in states))
         return self._wait(lambda s: s.state in states, timeout_s, f"state {names}", DrumState.FAULT in states)
+
+    def wait_homed(self, timeout_s: float) -> DrumStatus:
+        """Poll until the HOME just sent has ended: IDLE, homed (the status returned). A HOME that ends without
+        homing, the controller back at NOT_HOMED after HOMING (a STOP stops it there, from any face), raises
+        :class:`DrumWaitAborted` at once, where a wait for IDLE ran its whole timeout out. DrumFault (HOME_NOT_FOUND
+        and the rest) and DrumTimeout as every wait."""
+        seen_homing = False
+
+        def homed(s: DrumStatus) -> bool:
+            nonlocal seen_homing
+            seen_homing = seen_homing or s.state == DrumState.HOMING
+            if seen_homing and s.state == DrumState.NOT_HOMED:
+                raise DrumWaitAborted("HOME stopped before it homed (the controller is NOT_HOMED again)")
+            return s.state == DrumState.IDLE
+
+        return self._wait(homed, timeout_s, "state IDLE (homed)")
 
     def wait_hx711_rate(self, timeout_s: float) -> DrumStatus:
         """Poll until the controller has timed its HX711's output rate at boot (``hx711_rate_sps`` > 0: 6 DOUT-ready

@@ -13,6 +13,7 @@ from rigctl.core.drum import (
     DrumFault as DrumFault,
     DrumReset as DrumReset,
     DrumTimeout as DrumTimeout,
+    DrumWaitAborted as DrumWaitAborted,
     SetpointRangeError as SetpointRangeError,
     describe_faults as describe_faults,
 )
