@@ -17,16 +17,18 @@ One numba kernel reads each sample of a trial once and, per taxel, in the same t
    step loop); a second pass turns the set bits into NWB spike times (work proportional to the spikes).
 
 Layout: time is the outer loop, in chunks of at most 32 steps (never across a bitmap word or a trial's end); the
-lanes are ``block`` trials x n_channels (trial-major, channel-minor, contiguous: the SIMD axis). Per chunk a pre-pass
-gathers and normalises the block's readings into a (32, lanes) buffer (integer readings by explicit SIMD vectors, a
-row rounded up to whole registers: a loop over a row's 18 channels ran behind LLVM's run-time overlap checks with a
-scalar tail, about as long as the SA steps), then each population steps every lane through the chunk in one
-contiguous loop. The spike times are decoded from the bitmaps a byte at a time from a table (no branch on how many
-spikes a word holds). Blocks of trials run in parallel on threads of ours: the kernel's one (serial)
-build, the next block of trials on each of ``numba.get_num_threads()`` threads in turn (it releases the GIL). No
-``parallel=True`` build: it took ~2.4x the compile time of the serial one (12.2 against 5.1 s of CPU, on the first
-encoding of an installation) and ran 128 trials x 6 s x 18 taxels in the same CPU time (SA: 12-15 against 13-14 ms). Trials are
-sorted by length so a block's trials end together.
+lanes are ``block`` trials x n_channels (trial-major, channel-minor, contiguous: the SIMD axis). Per chunk a pre-
+pass gathers and normalises the block's readings into a (32, lanes) buffer (integer readings by explicit SIMD
+vectors, a row rounded up to whole registers: a loop over a row's 18 channels ran behind LLVM's run-time overlap
+checks with a scalar tail, about as long as the SA steps), then each population steps every lane through the chunk
+in one contiguous loop (float32 SA lanes 16 at a time as explicit vectors, :func:`_sa_vec_one`: LLVM's own
+vectoriser kept them in 256-bit registers, the one-thread kernel ~20 % slower). The spike times are decoded from the
+bitmaps a word at a time (:mod:`rigctl.encoding.bitmaps`: no branch on how many spikes a word holds). Blocks of
+trials run in parallel on threads of ours: the kernel's one (serial) build, the next block of trials on each of
+``numba.get_num_threads()`` threads in turn (it releases the GIL). No ``parallel=True`` build: it took ~2.4x the
+compile time of the serial one (12.2 against 5.1 s of CPU, on the first encoding of an installation) and ran 128
+trials x 6 s x 18 taxels in the same CPU time (SA: 12-15 against 13-14 ms). Trials are sorted by length so a block's
+trials end together.
 
 **Precision.** The state (v, u, filter) is float32 by default: half the bytes of float64, twice the SIMD lanes. The
 model itself is sensitive to rounding: the same float64 per-sample loop fed the input nudged by one ulp changes a
@@ -55,10 +57,10 @@ import numba
 import numpy as np
 from llvmlite import ir
 from numba import types
-from numba.cpython.unsafe.numbers import trailing_zeros
 from numba.extending import intrinsic, overload
 
 from rigctl.core.encoding_model import MODEL_RATE_HZ, RA_CUTOFF_HZ
+from rigctl.encoding.bitmaps import WORD, decode_times, decode_times_of, popcount
 from rigctl.encoding.filters import lowpass_coefficients
 from rigctl.encoding.spikes import SpikeTrains
 
@@ -98,20 +100,99 @@ def _sa_step_impl(v0, u0, i_in, kc):  # pragma: no cover - compiled by numba
     return exact
 
 
+#: float32 SA lanes stepped at once by :func:`sa_vec_one` (one 512-bit register where the CPU has AVX-512; LLVM splits
+#: it into two 256-bit ones elsewhere): the block's lane arrays are padded to a multiple of it
+_SA_VEC = 16
+
+
+def _sa_vec_codegen(context, builder, signature, args, per_lane):  # pragma: no cover - compiled by numba
+    """The body of :func:`sa_vec_one` and :func:`sa_vec_lanes`: :func:`_sa_lane`'s float32 operations on ``_SA_VEC``
+    lanes as explicit LLVM vector operations (the same IEEE products, sums and compare, no contraction: bit for bit
+    the scalar lane's results)."""
+    vv, uu, msk, idx, xb, ix, g, kc, c, d, v_peak, bit = args
+    t_vv, t_uu, t_msk, _, t_xb, _, t_g = signature.args[:7]
+    f32, i32 = ir.FloatType(), ir.IntType(32)
+    vf, vi = ir.VectorType(f32, _SA_VEC), ir.VectorType(i32, _SA_VEC)
+    zeros = ir.Constant(vi, [0] * _SA_VEC)
+
+    def ptr(aty, aval, i, vty):
+        data = context.make_array(aty)(context, builder, aval).data
+        return builder.bitcast(builder.gep(data, [i]), vty.as_pointer())
+
+    def splat(x, vty):
+        one = builder.insert_element(ir.Constant(vty, ir.Undefined), x, ir.Constant(i32, 0))
+        return builder.shuffle_vector(one, ir.Constant(vty, ir.Undefined), zeros)
+
+    def k(i):
+        return splat(builder.extract_value(kc, i), vf)
+
+    x = builder.load(ptr(t_xb, xb, ix, vf), align=4)
+    gv = builder.load(ptr(t_g, g, idx, vf), align=4) if per_lane else splat(g, vf)
+    i_in = builder.fmul(x, gv)
+    p_v, p_u, p_m = ptr(t_vv, vv, idx, vf), ptr(t_uu, uu, idx, vf), ptr(t_msk, msk, idx, vi)
+    v0, u0 = builder.load(p_v, align=4), builder.load(p_u, align=4)
+    w = builder.fadd(k(6), builder.fmul(k(0), builder.fsub(i_in, u0)))  # h (e - u + I)
+    v1 = builder.fadd(builder.fmul(v0, builder.fadd(builder.fmul(k(4), v0), k(5))), w)
+    v2 = builder.fadd(builder.fmul(v1, builder.fadd(builder.fmul(k(4), v1), k(5))), w)
+    u1 = builder.fadd(builder.fmul(k(7), u0), builder.fmul(k(8), v2))
+    s = builder.fcmp_ordered(">=", v2, splat(v_peak, vf))
+    builder.store(builder.select(s, splat(c, vf), v2), p_v, align=4)
+    builder.store(builder.select(s, builder.fadd(u1, splat(d, vf)), u1), p_u, align=4)
+    m = builder.load(p_m, align=4)
+    builder.store(builder.or_(m, builder.select(s, splat(bit, vi), zeros)), p_m, align=4)
+    return context.get_dummy_value()
+
+
+def _sa_vec_sig(vv, uu, msk, idx, xb, ix, g, kc, c, d, v_peak, bit):
+    return types.void(vv, uu, msk, types.intp, xb, types.intp, g, kc, c, d, v_peak, bit)
+
+
 @intrinsic
-def _ctpop32(typingctx, m):  # pragma: no cover - compiled by numba
-    """Set bits of a uint32 (LLVM's ctpop: one popcnt where the CPU has it)."""
-    sig = types.uint32(types.uint32)
+def _sa_vec_one(typingctx, vv, uu, msk, idx, xb, ix, g, kc, c, d, v_peak, bit):  # pragma: no cover - compiled by numba
+    """``_SA_VEC`` float32 SA lanes from flat index ``idx`` of ``vv``, ``uu`` (float32) and ``msk`` (uint32) stepped by
+    one 1 ms step with input ``xb[ix:ix + _SA_VEC] * g`` (one gain ``g`` for every lane): :func:`_sa_lane` as
+    vectors. kc: the float32 constants tuple (:func:`_constants`); c, d, v_peak float32; bit uint32. The caller keeps
+    every index in bounds (C-contiguous arrays)."""
+    return _sa_vec_sig(vv, uu, msk, idx, xb, ix, g, kc, c, d, v_peak, bit), partial(_sa_vec_codegen, per_lane=False)
+
+
+@intrinsic
+def _sa_vec_lanes(typingctx, vv, uu, msk, idx, xb, ix, g, kc, c, d, v_peak, bit):  # pragma: no cover - numba
+    """:func:`sa_vec_one` with each lane's own gain, ``g[idx:idx + _SA_VEC]`` (a float32 array laid out as ``vv``)."""
+    return _sa_vec_sig(vv, uu, msk, idx, xb, ix, g, kc, c, d, v_peak, bit), partial(_sa_vec_codegen, per_lane=True)
+
+#: bytes of one SIMD register (AVX2): the pre-pass's explicit vectors (:func:`norm_vec`)
+_VEC_BYTES = 32
+
+
+@intrinsic
+def _norm_vec(typingctx, src, i_src, off, scl, i_ch, dst, i_dst):  # pragma: no cover - compiled by numba
+    """``dst[i_dst + c] = (dst.dtype(src[i_src + c]) - off[i_ch + c]) * scl[i_ch + c]`` for the c of one SIMD
+    register (``_VEC_BYTES`` of ``dst``'s dtype), as explicit LLVM vector operations, no overlap checks: the same
+    IEEE conversion (integer to float: exact), difference and product as the scalar expression, bit for bit.
+    ``src`` an integer array, the others of one float dtype, all 1-d C-contiguous; the caller keeps every index in
+    bounds."""
+    width = _VEC_BYTES * 8 // dst.dtype.bitwidth
+    sig = types.void(src, types.intp, off, scl, types.intp, dst, types.intp)
 
     def codegen(context, builder, signature, args):
-        return builder.ctpop(args[0])
+        a_src, a_is, a_off, a_scl, a_ic, a_dst, a_id = args
+        t_src, _, t_off, t_scl, _, t_dst, _ = signature.args
+        vf = ir.VectorType(context.get_value_type(t_dst.dtype), width)
+        vi = ir.VectorType(context.get_value_type(t_src.dtype), width)
+
+        def ptr(aty, aval, idx, vty):
+            data = context.make_array(aty)(context, builder, aval).data
+            return builder.bitcast(builder.gep(data, [idx]), vty.as_pointer())
+
+        raw = builder.load(ptr(t_src, a_src, a_is, vi), align=t_src.dtype.bitwidth // 8)
+        x = builder.sitofp(raw, vf) if t_src.dtype.signed else builder.uitofp(raw, vf)
+        al = t_dst.dtype.bitwidth // 8
+        o = builder.load(ptr(t_off, a_off, a_ic, vf), align=al)
+        sc = builder.load(ptr(t_scl, a_scl, a_ic, vf), align=al)
+        builder.store(builder.fmul(builder.fsub(x, o), sc), ptr(t_dst, a_dst, a_id, vf), align=al)
+        return context.get_dummy_value()
     return sig, codegen
-
-
-@numba.njit(inline="always", cache=True)
-def _popcount(m):  # pragma: no cover - compiled by numba
-    """Set bits of a uint32, int32."""
-    return np.int32(_ctpop32(m))  # type: ignore[call-arg]
 
 
 def _constants_py(dtype_of, a, b):  # pragma: no cover - compiled by numba
@@ -148,10 +229,6 @@ def _cast_impl(v, like):  # pragma: no cover - compiled by numba
         return to(v)
     return cast
 
-#: steps per chunk: one bit each in a lane's uint32 spike mask
-_WORD = 32
-
-
 @numba.njit(inline="always", fastmath=_FASTMATH, cache=True)
 def _sa_lane(vv, uu, msk, p, j, i_in, kc, c, d, v_peak, bit, zero32):  # pragma: no cover - compiled by numba
     """One SA lane's step: v, u advanced by input ``i_in``, reset on a spike (selects, no branch), the spike as
@@ -161,40 +238,6 @@ def _sa_lane(vv, uu, msk, p, j, i_in, kc, c, d, v_peak, bit, zero32):  # pragma:
     vv[p, j] = c if s else v2
     uu[p, j] = u1 + d if s else u1
     msk[p, j] = msk[p, j] | (bit if s else zero32)
-
-#: bytes of one SIMD register (AVX2): the pre-pass's explicit vectors (:func:`_norm_vec`)
-_VEC_BYTES = 32
-
-
-@intrinsic
-def _norm_vec(typingctx, src, i_src, off, scl, i_ch, dst, i_dst):  # pragma: no cover - compiled by numba
-    """``dst[i_dst + c] = (dst.dtype(src[i_src + c]) - off[i_ch + c]) * scl[i_ch + c]`` for the c of one SIMD
-    register (``_VEC_BYTES`` of ``dst``'s dtype), as explicit LLVM vector operations, no overlap checks: the same
-    IEEE conversion (integer to float: exact), difference and product as the scalar expression, bit for bit.
-    ``src`` an integer array, the others of one float dtype, all 1-d C-contiguous; the caller keeps every index in
-    bounds."""
-    width = _VEC_BYTES * 8 // dst.dtype.bitwidth
-    sig = types.void(src, types.intp, off, scl, types.intp, dst, types.intp)
-
-    def codegen(context, builder, signature, args):
-        a_src, a_is, a_off, a_scl, a_ic, a_dst, a_id = args
-        t_src, _, t_off, t_scl, _, t_dst, _ = signature.args
-        vf = ir.VectorType(context.get_value_type(t_dst.dtype), width)
-        vi = ir.VectorType(context.get_value_type(t_src.dtype), width)
-
-        def ptr(aty, aval, idx, vty):
-            data = context.make_array(aty)(context, builder, aval).data
-            return builder.bitcast(builder.gep(data, [idx]), vty.as_pointer())
-
-        raw = builder.load(ptr(t_src, a_src, a_is, vi), align=t_src.dtype.bitwidth // 8)
-        x = builder.sitofp(raw, vf) if t_src.dtype.signed else builder.uitofp(raw, vf)
-        al = t_dst.dtype.bitwidth // 8
-        o = builder.load(ptr(t_off, a_off, a_ic, vf), align=al)
-        sc = builder.load(ptr(t_scl, a_scl, a_ic, vf), align=al)
-        builder.store(builder.fmul(builder.fsub(x, o), sc), ptr(t_dst, a_dst, a_id, vf), align=al)
-        return context.get_dummy_value()
-    return sig, codegen
-
 
 def _norm_row(xf, i_src, off, scl, dst, i_dst, n_ch):  # pragma: no cover - replaced by the overload below
     """``dst[i_dst + c] = (dst.dtype(xf[i_src + c]) - off[c]) * scl[c]`` for c < n_ch: one row of readings,
@@ -224,6 +267,36 @@ def _norm_row_impl(xf, i_src, off, scl, dst, i_dst, n_ch):  # pragma: no cover -
             for c in range(n_ch):
                 dst[i_dst + c] = (_cast(xf[i_src + c], dst) - off[c]) * scl[c]
     return vec
+
+
+def _sa_steps(vv, uu, msk, gg, p, n_l, n_lp, xb, ix, g0, kc, c, d, v_peak, bit, zero32, zero_sa):  # pragma: no cover
+    """One step of population p's lanes (:func:`_sa_lane` each) with input ``xb[ix + j]`` times the one gain ``g0``
+    (when not 0: a constant, not a load a lane) or each lane's ``gg[p, j]``. float32: ``SA_VEC`` lanes at once
+    (:func:`sa_vec_one`), every lane of the padded ``n_lp``; float64: lane by lane, the ``n_l`` real ones."""
+    raise NotImplementedError
+
+
+@overload(_sa_steps, inline="always", jit_options={"fastmath": _FASTMATH})
+def _sa_steps_impl(vv, uu, msk, gg, p, n_l, n_lp, xb, ix, g0, kc, c, d, v_peak, bit, zero32, zero_sa):  # pragma: no cover
+    if vv.dtype == types.float32:
+        def vec(vv, uu, msk, gg, p, n_l, n_lp, xb, ix, g0, kc, c, d, v_peak, bit, zero32, zero_sa):
+            row = p * n_lp
+            if g0 != zero_sa:
+                for j in range(0, n_lp, _SA_VEC):
+                    _sa_vec_one(vv, uu, msk, row + j, xb, ix + j, g0, kc, c, d, v_peak, bit)  # type: ignore[call-arg]
+            else:
+                for j in range(0, n_lp, _SA_VEC):
+                    _sa_vec_lanes(vv, uu, msk, row + j, xb, ix + j, gg, kc, c, d, v_peak, bit)  # type: ignore[call-arg]
+        return vec
+
+    def lanes(vv, uu, msk, gg, p, n_l, n_lp, xb, ix, g0, kc, c, d, v_peak, bit, zero32, zero_sa):
+        if g0 != zero_sa:
+            for j in range(n_l):
+                _sa_lane(vv, uu, msk, p, j, xb[ix + j] * g0, kc, c, d, v_peak, bit, zero32)
+        else:
+            for j in range(n_l):
+                _sa_lane(vv, uu, msk, p, j, xb[ix + j] * gg[p, j], kc, c, d, v_peak, bit, zero32)
+    return lanes
 
 
 def _padded_py(a, width):  # pragma: no cover - compiled by numba
@@ -274,11 +347,12 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
         i0 = bi * block
         m = min(n_run, i0 + block) - i0
         n_l = m * n_ch
-        xb = np.empty(_WORD * n_l + offp.size, dtype=off.dtype)  # (+ the last row's padding)
-        xr = np.empty(_WORD * n_l + offp_r.size if ra else 1, dtype=filt.dtype)
-        vv = np.empty((n_sa, n_l), dtype=off.dtype)
-        uu = np.empty((n_sa, n_l), dtype=off.dtype)
-        gg = np.empty((n_sa, n_l), dtype=off.dtype)
+        n_lp = (n_l + _SA_VEC - 1) // _SA_VEC * _SA_VEC  # (SA lanes padded to whole vectors: idle lanes at rest)
+        xb = np.zeros(WORD * n_l + offp.size + _SA_VEC, dtype=off.dtype)  # (+ the last row's and lanes' padding)
+        xr = np.empty(WORD * n_l + offp_r.size if ra else 1, dtype=filt.dtype)
+        vv = np.full((n_sa, n_lp), c, dtype=off.dtype)
+        uu = np.zeros((n_sa, n_lp), dtype=off.dtype)
+        gg = np.zeros((n_sa, n_lp), dtype=off.dtype)
         gg_one = np.empty(n_sa, dtype=off.dtype)
         vr = np.empty(n_l, dtype=filt.dtype)
         ur = np.empty(n_l, dtype=filt.dtype)
@@ -286,7 +360,7 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
         z2 = np.empty(n_l, dtype=filt.dtype)
         yl = np.empty(n_l, dtype=filt.dtype)
         cnt = np.zeros((n_pop, n_l), dtype=np.int32)
-        msk = np.zeros((n_pop, n_l), dtype=np.uint32)
+        msk = np.zeros((n_pop, n_lp), dtype=np.uint32)
         lens = np.empty(m, dtype=np.int64)
         rs = np.empty(m, dtype=np.int64)
         vl = np.empty(n_l, dtype=np.uint32)
@@ -328,8 +402,8 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
         while n < n_max:
             while lens[kk] <= n:
                 kk += 1
-            sh0 = n & (_WORD - 1)
-            mc = min(_WORD - sh0, lens[kk] - n)
+            sh0 = n & (WORD - 1)
+            mc = min(WORD - sh0, lens[kk] - n)
             for i in range(mc):  # pre-pass: the chunk's normalised readings (an ended trial's lanes: its first row)
                 for k in range(m):  # (in lane order: a row's padding lands on the next row's lanes, written next)
                     row = rs[k] + n + i if n + i < lens[k] else rs[k]
@@ -341,12 +415,7 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
                 g0 = gg_one[p]
                 for i in range(mc):
                     bit = np.uint32(1 << (sh0 + i))  # (a uint32 select and or: a shift by a variable widened to 64 bits)
-                    if g0 != zero_sa:  # one gain for every lane (e.g. C = 1): a constant, not a load a lane
-                        for j in range(n_l):
-                            _sa_lane(vv, uu, msk, p, j, xb[i * n_l + j] * g0, kc, c, d, v_peak, bit, zero32)
-                    else:
-                        for j in range(n_l):
-                            _sa_lane(vv, uu, msk, p, j, xb[i * n_l + j] * gg[p, j], kc, c, d, v_peak, bit, zero32)
+                    _sa_steps(vv, uu, msk, gg, p, n_l, n_lp, xb, i * n_l, g0, kc, c, d, v_peak, bit, zero32, zero_sa)
             if ra:
                 for i in range(mc):
                     bit = np.uint32(1 << (sh0 + i))
@@ -378,17 +447,17 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
                         filt[2, t, ch] = yl[j]
                         filt[3, t, ch] = vr[j]
                         filt[4, t, ch] = ur[j]
-            if (n & (_WORD - 1)) == 0 or n == n_max:  # a word is complete: counts and bitmap words
-                w = (n - 1) // _WORD
+            if (n & (WORD - 1)) == 0 or n == n_max:  # a word is complete: counts and bitmap words
+                w = (n - 1) // WORD
                 for k in range(m):  # each lane's samples in the word (none: its trial ended before it)
-                    left = lens[k] - w * _WORD
-                    valid = np.uint32(0) if left <= 0 else np.uint32(0xFFFFFFFF) >> np.uint32(_WORD - min(left, _WORD))
+                    left = lens[k] - w * WORD
+                    valid = np.uint32(0) if left <= 0 else np.uint32(0xFFFFFFFF) >> np.uint32(WORD - min(left, WORD))
                     for ch in range(n_ch):
                         vl[k * n_ch + ch] = valid
                 for p in range(n_pop):  # (one loop over the block's lanes: SIMD, no tail per trial)
                     for j in range(n_l):
                         mm = msk[p, j] & vl[j]
-                        cnt[p, j] += _popcount(mm)
+                        cnt[p, j] += popcount(mm)
                         msk[p, j] = 0
                         msk2[j] = mm
                     if want_bits:  # (a word past a trial's end: zeros, never read)
@@ -450,89 +519,6 @@ def on_threads(run: Callable[[int, int], object], n: int, step: int) -> None:
     finally:
         for f in futures:
             f.result()
-
-
-def _bit_positions() -> np.ndarray:
-    """For every byte value: the positions of its set bits, ascending, padded with 0 to 8 (float64: exact)."""
-    pos = np.zeros((256, 8), np.float64)
-    for v in range(256):
-        bits = [i for i in range(8) if v >> i & 1]
-        pos[v, :len(bits)] = bits
-    return pos
-
-
-_BYTE_POS = _bit_positions()
-
-
-@intrinsic
-def _byte_times(typingctx, out, pos, lut, byte, base, dt):  # pragma: no cover - compiled by numba
-    """``out[pos + k] = (base + lut[byte, k]) * dt`` for k < 8, as explicit vector operations (a sum and a product;
-    the sum of integer values below 2^53 is exact, so the same numbers as ``(sample) * dt`` of the integer
-    sample). ``out`` float64 with at least 8 slots from ``pos``; ``lut`` (256, 8) float64."""
-    sig = types.void(out, types.intp, lut, types.intp, types.float64, types.float64)
-
-    def codegen(context, builder, signature, args):
-        a_out, a_pos, a_lut, a_byte, a_base, a_dt = args
-        t_out, _, t_lut = signature.args[:3]
-        vd = ir.VectorType(ir.DoubleType(), 8)
-        lut_p = builder.gep(context.make_array(t_lut)(context, builder, a_lut).data,
-                            [builder.mul(a_byte, ir.Constant(a_byte.type, 8))])
-        k = builder.load(builder.bitcast(lut_p, vd.as_pointer()), align=8)
-
-        def splat(x):
-            v = ir.Constant(vd, ir.Undefined)
-            for i in range(8):
-                v = builder.insert_element(v, x, ir.Constant(ir.IntType(32), i))
-            return v
-        t = builder.fmul(builder.fadd(splat(a_base), k), splat(a_dt))
-        out_p = builder.gep(context.make_array(t_out)(context, builder, a_out).data, [a_pos])
-        builder.store(t, builder.bitcast(out_p, vd.as_pointer()), align=8)
-        return context.get_dummy_value()
-    return sig, codegen
-
-
-def _times_py(bits, counts, lens, n0, dt, out):  # pragma: no cover - compiled by numba
-    """Flat spike times, trial-major then train, from the spike bitmaps: row r = t * C + ch of ``bits`` holds the
-    words of a trial of ``lens[t]`` samples; time = (sample + n0[t]) * dt.
-
-    A word is decoded a byte at a time from a table of each byte's set bits, eight times written at once whatever
-    the byte holds (:func:`_byte_times`), the position moved on by its count: no branch on the spikes (a loop
-    over a word's set bits mispredicted its end about once a word, 0-14 spikes a word: most of this pass's time).
-    The slots past a byte's own spikes take values the next bytes overwrite, so this runs where 32 slots of ``out``
-    are left; the last words of ``out`` (a thread's own part) bit by bit."""
-    n_trials, n_ch = counts.shape
-    end = out.shape[0]
-    pos = 0
-    for t in range(n_trials):
-        n_words = (lens[t] + _WORD - 1) // _WORD
-        for ch in range(n_ch):
-            if counts[t, ch] == 0:
-                continue
-            r = t * n_ch + ch
-            for w in range(n_words):
-                mm = bits[r, w]
-                base = np.int64(w * _WORD) + n0[t]
-                if pos + _WORD <= end:  # (each byte's position from the word's lower bytes: pos is one add a word)
-                    lo = np.uint32(0)
-                    for i in range(4):
-                        byte = (mm >> np.uint32(8 * i)) & np.uint32(0xFF)
-                        _byte_times(out, pos + _popcount(mm & lo), _BYTE_POS, byte, np.float64(base + 8 * i), dt)  # type: ignore[call-arg]
-                        lo = (lo << np.uint32(8)) | np.uint32(0xFF)
-                    pos += _popcount(mm)
-                else:
-                    while mm:
-                        out[pos] = (base + trailing_zeros(mm)) * dt  # type: ignore[call-arg]
-                        pos += 1
-                        mm = mm & (mm - np.uint32(1))
-
-
-_times = numba.njit(cache=True, nogil=True)(_times_py)
-
-
-def _times_of(bits, counts, lens, n0, dt, out, ends, i: int, j: int) -> None:
-    """:func:`_times` for trials ``[i, j)``: their bitmap rows, counts and lengths, into ``out[ends[i]:ends[j]]``."""
-    n_ch = counts.shape[1]
-    _times(bits[i * n_ch:j * n_ch], counts[i:j], lens[i:j], n0[i:j], dt, out[ends[i]:ends[j]])
 
 
 def _blocks(x, starts, order, args, i: int, j: int) -> None:
@@ -666,7 +652,7 @@ def run_fused(data: np.ndarray, starts: np.ndarray, *, offset: Any = 0.0, scale:
     order = np.flatnonzero(act & (lengths > 0))
     order = order[np.argsort(lengths[order], kind="stable")]
     counts = np.zeros((n_pop, n_trials, n_ch), dtype=np.int64)
-    n_words = (int(lengths.max(initial=0)) + _WORD - 1) // _WORD
+    n_words = (int(lengths.max(initial=0)) + WORD - 1) // WORD
     bits = np.empty((n_pop, n_trials * n_ch if want_times else 0, max(n_words, 1)), dtype=np.uint32)
     args = (off, scl, gains, bool(ra), off64.astype(rdt), scl64.astype(rdt), rdt.type(k_ra), bq, rdt.type(fs),
             bool(rectify), np.array([a, b, c, d, v_peak], dtype=rdt), state.v, state.u, state.filt, state.fresh, counts,
@@ -680,7 +666,7 @@ def run_fused(data: np.ndarray, starts: np.ndarray, *, offset: Any = 0.0, scale:
         cp = np.ascontiguousarray(counts[p])
         ends = np.concatenate(([0], np.cumsum(cp.sum(axis=1))))  # each trial's first spike in out, and the end
         out = np.empty(int(ends[-1]), dtype=np.float64)
-        on_threads(partial(_times_of, bits[p], cp, lengths, n0a, 1.0 / float(fs), out, ends), n_trials, int(block))
+        on_threads(partial(decode_times_of, bits[p], cp, lengths, n0a, 1.0 / float(fs), out, ends), n_trials, int(block))
         trains.append(SpikeTrains.from_counts(out, cp))
     return FusedResult(tuple(trains[:n_sa]), trains[n_sa] if ra else None, counts)
 
@@ -689,7 +675,7 @@ def kernels_cached() -> bool:
     """True when numba's on-disk cache holds the fused kernels (encoding starts at once); False when the first
     encoding of this installation must compile them first (seconds). Best effort: True when it cannot tell."""
     try:
-        kernels: tuple[Any, ...] = (_fused, _times)
+        kernels: tuple[Any, ...] = (_fused, decode_times)
         return all(os.path.exists(k._cache._cache_file._index_path) for k in kernels)
     except AttributeError:  # another numba: do not claim a compile that may not happen
         return True
