@@ -19,23 +19,9 @@ from numba.core import config
 from numba.cpython.unsafe.numbers import trailing_zeros
 from numba.extending import intrinsic, overload
 
-__all__ = ["WORD", "HAS_COMPRESS", "popcount", "word_times", "decode_times", "decode_times_of"]
+from rigctl.encoding.llvm_ops import claim, popcount
 
-
-@intrinsic
-def _ctpop32(typingctx, m):  # pragma: no cover - compiled by numba
-    """Set bits of a uint32 (LLVM's ctpop: one popcnt where the CPU has it)."""
-    sig = types.uint32(types.uint32)
-
-    def codegen(context, builder, signature, args):
-        return builder.ctpop(args[0])
-    return sig, codegen
-
-
-@numba.njit(inline="always", cache=True)
-def popcount(m):  # pragma: no cover - compiled by numba
-    """Set bits of a uint32, int32."""
-    return np.int32(_ctpop32(m))  # type: ignore[call-arg]
+__all__ = ["WORD", "HAS_COMPRESS", "word_times", "decode_times"]
 
 
 #: samples a word of a spike bitmap: one bit each (uint32)
@@ -157,43 +143,49 @@ def _word_impl(out, pos, mm, base, dt):  # pragma: no cover - compiled by numba
     return by_bytes
 
 
-def _times_py(bits, counts, lens, n0, dt, out):  # pragma: no cover - compiled by numba
-    """Flat spike times, trial-major then train, from the spike bitmaps: row r = t * C + ch of ``bits`` holds the
-    words of a trial of ``lens[t]`` samples; time = (sample + n0[t]) * dt.
+def _times_py(bits, counts, lens, n0, dt, out, ends, step, counter):  # pragma: no cover - compiled by numba
+    """Flat spike times from the spike bitmaps of P populations, trial-major then train within each: row r = t * C + ch
+    of ``bits[p]`` (P, T * C, W) holds the words of a trial of ``lens[t]`` samples; time = (sample + n0[t]) * dt;
+    population p's trial t goes to ``out[ends[p, t]:ends[p, t + 1]]``. The work is ``step`` trials of one population
+    at a time, each claimed from ``counter`` (:func:`~rigctl.encoding.llvm_ops.claim`): every thread of a call runs
+    this once, over the units it claims.
 
     A word is decoded whole where the CPU compresses its bit numbers by the word in one instruction
-    (:func:`word_times`: 16 times written whatever the word holds), else a byte at a time from
-    a table of each byte's set bits, eight times written at once (:func:`_byte_times`); the
-    position moved on by the word's count: no branch on the spikes (a loop over a word's set bits mispredicted its
-    end about once a word, 0-14 spikes a word: most of this pass's time). The slots past a word's own spikes take
-    values the next words overwrite, so this runs where 32 slots of ``out`` are left; the last words of ``out`` (a
-    thread's own part) bit by bit."""
-    n_trials, n_ch = counts.shape
-    end = out.shape[0]
-    pos = 0
-    for t in range(n_trials):
-        n_words = (lens[t] + WORD - 1) // WORD
-        for ch in range(n_ch):
-            if counts[t, ch] == 0:
-                continue
-            r = t * n_ch + ch
-            for w in range(n_words):
-                mm = bits[r, w]
-                base = np.int64(w * WORD) + n0[t]
-                if pos + WORD <= end:
-                    _word(out, pos, mm, base, dt)
-                    pos += popcount(mm)
-                else:
-                    while mm:
-                        out[pos] = (base + trailing_zeros(mm)) * dt  # type: ignore[call-arg]
-                        pos += 1
-                        mm = mm & (mm - np.uint32(1))
+    (:func:`word_times`: 16 times written whatever the word holds), else a byte at a time from a table of each byte's
+    set bits, eight times written at once (:func:`_byte_times`); the position moved on by the word's count: no branch
+    on the spikes (a loop over a word's set bits mispredicted its end about once a word, 0-14 spikes a word: most of
+    this pass's time). The slots past a word's own spikes take values the next words overwrite, so this runs where
+    32 slots of the unit's part of ``out`` are left; its last words bit by bit (another thread may be writing past
+    them)."""
+    n_pop, n_trials, n_ch = counts.shape
+    per_pop = (n_trials + step - 1) // step
+    while True:
+        unit: int = claim(counter)  # type: ignore[call-arg]
+        if unit >= n_pop * per_pop:
+            return
+        p = unit // per_pop
+        i = unit % per_pop * step
+        j = min(n_trials, i + step)
+        pos = ends[p, i]
+        end = ends[p, j]
+        for t in range(i, j):
+            n_words = (lens[t] + WORD - 1) // WORD
+            for ch in range(n_ch):
+                if counts[p, t, ch] == 0:
+                    continue
+                r = t * n_ch + ch
+                for w in range(n_words):
+                    mm = bits[p, r, w]
+                    base = np.int64(w * WORD) + n0[t]
+                    if pos + WORD <= end:
+                        _word(out, pos, mm, base, dt)
+                        pos += popcount(mm)
+                    else:
+                        while mm:
+                            out[pos] = (base + trailing_zeros(mm)) * dt
+                            pos += 1
+                            mm = mm & (mm - np.uint32(1))
 
 
+#: (:func:`_times_py`) released GIL: the threads of a call run it side by side
 decode_times = numba.njit(cache=True, nogil=True)(_times_py)
-
-
-def decode_times_of(bits, counts, lens, n0, dt, out, ends, i: int, j: int) -> None:
-    """The decode (:func:`_times_py`) for trials ``[i, j)``: their bitmap rows, counts and lengths, into ``out[ends[i]:ends[j]]``."""
-    n_ch = counts.shape[1]
-    decode_times(bits[i * n_ch:j * n_ch], counts[i:j], lens[i:j], n0[i:j], dt, out[ends[i]:ends[j]])

@@ -60,8 +60,9 @@ from numba import types
 from numba.extending import intrinsic, overload
 
 from rigctl.core.encoding_model import MODEL_RATE_HZ, RA_CUTOFF_HZ
-from rigctl.encoding.bitmaps import WORD, decode_times, decode_times_of, popcount
+from rigctl.encoding.bitmaps import WORD, decode_times
 from rigctl.encoding.filters import lowpass_coefficients
+from rigctl.encoding.llvm_ops import claim, popcount
 from rigctl.encoding.spikes import SpikeTrains
 
 __all__ = ["FusedState", "FusedResult", "run_fused", "on_threads", "BLOCK_TRIALS"]
@@ -310,7 +311,7 @@ _padded = numba.njit(inline="always", cache=True)(_padded_py)
 
 
 def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_ra, rectify, izr, v, u, filt, fresh,
-              counts, bits, block, a, b, c, d, v_peak):  # pragma: no cover - compiled by numba
+              counts, bits, block, a, b, c, d, v_peak, next_block):  # pragma: no cover - compiled by numba
     """Run the fused encoder over the trials ``order`` (see the module docstring).
 
     x (N, C) raw input rows (uint16 counts or float); starts (T+1,) int64 row starts; order (M,) trials to run,
@@ -321,7 +322,9 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
     u (in/out); fresh (T,) uint8: start the filter at this trial's first sample (cleared); counts (P, T, C) int64
     (added to); bits (P, T * C, W) uint32 spike bitmaps (row t * C + ch; bit i of word w = a spike at sample
     32 w + i of this call; a word past a trial's end holds 0 or is not written), or (P, 0, 1) for counts
-    only; block trials per SIMD block. The SA arrays share the SA dtype (``off``'s), the RA ones the RA dtype (``filt``'s).
+    only; block trials per SIMD block; next_block (1,) int64, 0 at the call's start: the blocks are claimed from
+    it (:func:`~rigctl.encoding.llvm_ops.claim`), so every thread of a call runs this once. The SA arrays share the
+    SA dtype (``off``'s), the RA ones the RA dtype (``filt``'s).
 
     Per block, time runs in chunks of at most 32 steps that never cross a 32-step word or a trial's end: a pre-pass
     normalises the chunk's readings into (32, lanes) buffers, then each population steps all lanes for the chunk
@@ -343,7 +346,10 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
     zero_sa = kc[0] - kc[0]
     cr, dr, vpr = izr[2], izr[3], izr[4]
     b0, b1, b2, a1, a2, zi0, zi1 = bq[0], bq[1], bq[2], bq[3], bq[4], bq[5], bq[6]
-    for bi in range(n_blocks):
+    while True:  # (every thread of a call runs this once, over the blocks it claims)
+        bi: int = claim(next_block)  # type: ignore[call-arg]
+        if bi >= n_blocks:
+            break
         i0 = bi * block
         m = min(n_run, i0 + block) - i0
         n_l = m * n_ch
@@ -521,9 +527,15 @@ def on_threads(run: Callable[[int, int], object], n: int, step: int) -> None:
             f.result()
 
 
-def _blocks(x, starts, order, args, i: int, j: int) -> None:
-    """The kernel over trials ``order[i:j]`` (whole blocks: no two calls write the same state or output)."""
-    _fused(x, starts, order[i:j], *args)
+def _claiming(kernel, args, i: int, j: int) -> None:
+    """One thread's run of a kernel that claims its own work units (:func:`~rigctl.encoding.llvm_ops.claim`)."""
+    kernel(*args)
+
+
+def _on_claiming_threads(kernel, args: tuple[object, ...], n_units: int) -> None:
+    """``kernel(*args)`` once on each of up to ``numba.get_num_threads()`` threads (:func:`on_threads`), at most one a
+    unit: one dispatch a thread, where a range a call cost one each (~10-30 us of the GIL a block)."""
+    on_threads(partial(_claiming, kernel, args), min(n_units, numba.get_num_threads()), 1)
 
 
 @dataclass
@@ -656,18 +668,18 @@ def run_fused(data: np.ndarray, starts: np.ndarray, *, offset: Any = 0.0, scale:
     bits = np.empty((n_pop, n_trials * n_ch if want_times else 0, max(n_words, 1)), dtype=np.uint32)
     args = (off, scl, gains, bool(ra), off64.astype(rdt), scl64.astype(rdt), rdt.type(k_ra), bq, rdt.type(fs),
             bool(rectify), np.array([a, b, c, d, v_peak], dtype=rdt), state.v, state.u, state.filt, state.fresh, counts,
-            bits, int(block), dt.type(a), dt.type(b), dt.type(c), dt.type(d), dt.type(v_peak))
-    on_threads(partial(_blocks, x, starts, order, args), order.size, int(block))
+            bits, int(block), dt.type(a), dt.type(b), dt.type(c), dt.type(d), dt.type(v_peak), np.zeros(1, np.int64))
+    _on_claiming_threads(_fused, (x, starts, order, *args), -(-order.size // int(block)))
     if not want_times:
         return FusedResult((), None, counts)
     n0a = np.array(np.broadcast_to(np.asarray(n0, np.int64), (n_trials,)))  # a copy: writable, one kernel signature
-    trains = []
-    for p in range(n_pop):
-        cp = np.ascontiguousarray(counts[p])
-        ends = np.concatenate(([0], np.cumsum(cp.sum(axis=1))))  # each trial's first spike in out, and the end
-        out = np.empty(int(ends[-1]), dtype=np.float64)
-        on_threads(partial(decode_times_of, bits[p], cp, lengths, n0a, 1.0 / float(fs), out, ends), n_trials, int(block))
-        trains.append(SpikeTrains.from_counts(out, cp))
+    ends = np.zeros((n_pop, n_trials + 1), np.int64)  # population p's trial t: out[ends[p, t]:ends[p, t + 1]]
+    ends[:, 1:] = np.cumsum(counts.sum(axis=2).ravel()).reshape(n_pop, n_trials)
+    ends[1:, 0] = ends[:-1, -1]
+    out = np.empty(int(ends[-1, -1]), dtype=np.float64)  # (every population's times: one array, one decode round)
+    _on_claiming_threads(decode_times, (bits, counts, lengths, n0a, 1.0 / float(fs), out, ends, int(block),
+                                        np.zeros(1, np.int64)), n_pop * -(-n_trials // int(block)))
+    trains = [SpikeTrains.from_counts(out[ends[p, 0]:ends[p, -1]], counts[p]) for p in range(n_pop)]
     return FusedResult(tuple(trains[:n_sa]), trains[n_sa] if ra else None, counts)
 
 

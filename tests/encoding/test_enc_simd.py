@@ -149,3 +149,29 @@ def test_a_build_without_avx512_gives_the_same_spike_times(tmp_path):
     host = run()
     assert sum(len(t[0]) for t in host["trains"]) > 1000
     assert avx2["trains"] == host["trains"]
+
+
+def test_blocks_and_decode_units_claimed_by_threads_give_the_one_thread_result():
+    """The kernel's blocks and the decode's units are claimed by the call's threads (an atomic counter): every
+    population's spike times on all of numba's threads equal those on one, and each unit is decoded once."""
+    lengths = [int(n) for n in np.random.default_rng(9).integers(1, 700, 45)]  # 6 blocks, trials of every length
+    raw, starts = _ragged_readings(10, lengths)
+    coeff = np.random.default_rng(11).uniform(0.5, 2.5, (len(lengths), 18))
+
+    def run():
+        res = run_fused(raw, starts, offset=0.0, scale=1 / 1023, sa_gains=[1.0, coeff], k_sa=200.0)
+        return [(tr.spike_times, tr.spike_times_index) for tr in (*res.sa, res.ra)], res.counts
+
+    n_threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        one, one_counts = run()
+    finally:
+        numba.set_num_threads(n_threads)
+    for _ in range(5):  # (which thread claims which block varies from call to call)
+        every, counts = run()
+        np.testing.assert_array_equal(counts, one_counts)
+        for (t1, i1), (t2, i2) in zip(one, every, strict=True):
+            np.testing.assert_array_equal(t2, t1)
+            np.testing.assert_array_equal(i2, i1)
+    assert one_counts.sum() > 1000
