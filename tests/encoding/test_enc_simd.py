@@ -15,6 +15,7 @@ import numba
 import numpy as np
 import pytest
 
+from rigctl.encoding import bitmaps
 from rigctl.encoding.bitmaps import word_times
 from rigctl.encoding.fused import run_fused
 
@@ -113,17 +114,20 @@ def test_word_times_gives_every_set_bit_in_order_of_any_word():
     np.testing.assert_array_equal(got, want)
 
 
+def _build_case() -> dict:
+    """The input both builds encode: every SA and RA population's spike times and index as lists (exact in JSON)."""
+    raw, starts = _ragged_readings(7, [900, 1200, 77, 1500, 640, 1199, 32, 1000, 800, 450])
+    coeff = np.random.default_rng(8).uniform(0.5, 2.5, (10, 18))
+    res = run_fused(raw, starts, offset=0.0, scale=1 / 1023, sa_gains=[1.0, coeff], k_sa=200.0)
+    return {"has_compress": bitmaps.HAS_COMPRESS,
+            "trains": [[tr.spike_times.tolist(), tr.spike_times_index.tolist()] for tr in (*res.sa, res.ra)]}
+
+
 _OTHER_BUILD = """
-import json, sys, numpy as np
+import json, sys
 sys.path.insert(0, sys.argv[1])
-from test_enc_simd import _ragged_readings
-from rigctl.encoding import bitmaps
-from rigctl.encoding.fused import run_fused
-raw, starts = _ragged_readings(7, [900, 1200, 77, 1500, 640, 1199, 32, 1000, 800, 450])
-rng = np.random.default_rng(8)
-res = run_fused(raw, starts, offset=0.0, scale=1 / 1023, sa_gains=[1.0, rng.uniform(0.5, 2.5, (10, 18))], k_sa=200.0)
-print(json.dumps({"has_compress": bitmaps.HAS_COMPRESS,
-                  "trains": [[tr.spike_times.tolist(), tr.spike_times_index.tolist()] for tr in (*res.sa, res.ra)]}))
+from test_enc_simd import _build_case
+print(json.dumps(_build_case()))
 """
 
 
@@ -131,22 +135,17 @@ print(json.dumps({"has_compress": bitmaps.HAS_COMPRESS,
 def test_a_build_without_avx512_gives_the_same_spike_times(tmp_path):
     """The kernel and the decoder compiled for an AVX2 CPU (numba's NUMBA_CPU_NAME / NUMBA_CPU_FEATURES: the
     byte-table decoder, each 16-lane SA vector as two 256-bit halves) in a process of its own, with a numba cache of
-    its own, against the same input in this machine's build."""
-    here = Path(__file__).resolve().parent
+    its own, against the same input in this process's build."""
     script = tmp_path / "other_build.py"
     script.write_text(_OTHER_BUILD)
-
-    def run(**target: str) -> dict:  # (the AVX2 build in a cache of its own; this machine's in the suite's)
-        env = {**os.environ, **target}
-        done = subprocess.run([sys.executable, str(script), str(here)], env=env, capture_output=True, text=True,
-                              timeout=600)
-        assert done.returncode == 0, done.stderr[-2000:]
-        return json.loads(done.stdout)
-
-    avx2 = run(NUMBA_CACHE_DIR=str(tmp_path / "numba-avx2"), NUMBA_CPU_NAME="haswell",
-               NUMBA_CPU_FEATURES="+avx,+avx2,+fma,+popcnt,+sse4.2,+bmi,+bmi2")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba-avx2"), "NUMBA_CPU_NAME": "haswell",
+           "NUMBA_CPU_FEATURES": "+avx,+avx2,+fma,+popcnt,+sse4.2,+bmi,+bmi2"}
+    done = subprocess.run([sys.executable, str(script), str(Path(__file__).resolve().parent)], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    avx2 = json.loads(done.stdout)
     assert avx2["has_compress"] is False
-    host = run()
+    host = _build_case()
     assert sum(len(t[0]) for t in host["trains"]) > 1000
     assert avx2["trains"] == host["trains"]
 
