@@ -141,6 +141,53 @@ def test_ctrl_c_while_rigctl_starts_is_one_line(tmp_path):
 
 
 
+_IMPORT_TURNS_CTRL_C_INTO_IMPORT_ERROR = """
+import os, signal, sys, time
+from rigctl_launch import main
+def hook(event, args, done=[]):
+    if event == "import" and args[0] == "rigctl.simulation.dataset" and not done:
+        done.append(1)
+        hit = False
+        try:
+            if CTRL_C:
+                os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(500):
+                time.sleep(0.01)
+        except KeyboardInterrupt:
+            hit = True
+        if hit or not CTRL_C:  # a Cython module's init: the interrupt cleared, its own error raised (no context)
+            raise ImportError("Failed to import 'zlib.decompress' - cannot initialise module strings")
+sys.addaudithook(hook); sys.exit(main())
+"""
+
+
+@pytest.mark.parametrize("ctrl_c", [True, False], ids=["a Ctrl-C", "no Ctrl-C"])
+def test_a_ctrl_c_that_an_import_turned_into_its_own_error_ends_as_interrupted(tmp_path, ctrl_c):
+    """A loaded CI run: `rigctl sim dataset` interrupted in its first second said "internal error (a bug in rigctl):
+    ImportError: Failed to import 'zlib.decompress' - cannot initialise module strings": a Cython module whose import
+    the Ctrl-C reached replaces the KeyboardInterrupt with its own error. Any error after a delivered Ctrl-C ends the
+    command as interrupted (rigctl.cli.interrupts.is_interrupt); the same error without one is still a bug, said so."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "RIGCTL_CONFIG": str(tmp_path / "rig.json"), "PYTHONPATH": str(repo)}
+    out = tmp_path / "d.h5"
+    script = f"CTRL_C = {ctrl_c}\n" + _IMPORT_TURNS_CTRL_C_INTO_IMPORT_ERROR
+    done = subprocess.run([sys.executable, "-c", script, "sim", "dataset", "quick_check", "--out", str(out),
+                           "--no-progress"], capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120)
+    text = done.stdout + done.stderr
+    assert done.returncode == 1 and "Traceback" not in text, text
+    lines = text.strip().splitlines()
+    assert len(lines) == 1, text
+    if ctrl_c:
+        assert lines[0] == "Error: interrupted (Ctrl-C): no partial output was left; the inputs are unchanged"
+    else:
+        assert lines[0].startswith("Error: internal error (a bug in rigctl): ImportError: Failed to import")
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("made", [False, True])
 def test_sim_dataset_interrupted_says_kept_only_where_a_file_was_made(tmp_path, monkeypatch, made):
     """A Ctrl-C before the dataset's file is made said "the trials rendered so far are kept in X; continue with

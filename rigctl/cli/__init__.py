@@ -24,6 +24,9 @@ def skip_exit_collections() -> None:
     atexit.register(gc.freeze)
 
 
+#: the line a Ctrl-C ends a command with, where the command has nothing of its own to say (nothing to resume)
+INTERRUPTED = "interrupted (Ctrl-C): no partial output was left; the inputs are unchanged"
+
 #: command name -> "module:attribute" of the click command, imported only when the command runs
 COMMANDS = {
     "acquire": "rigctl.cli.acquire:acquire",
@@ -112,13 +115,16 @@ class LazyGroup(click.Group):
         except (click.exceptions.Exit, click.Abort):
             raise
         except KeyboardInterrupt:  # a command that has nothing to resume: its partial output is already removed
-            raise click.ClickException("interrupted (Ctrl-C): no partial output was left; the inputs are "
-                                       "unchanged") from None
+            raise click.ClickException(INTERRUPTED) from None
         except BrokenPipeError:  # `rigctl info X | head`: the reader has gone; end quietly (Python's recipe)
             _quiet_broken_pipe()
         except Exception as exc:
             if ctx.params.get("debug"):
                 raise
+            from rigctl.cli.interrupts import is_interrupt
+
+            if is_interrupt(exc):  # a Ctrl-C that C code turned into its own error (rigctl.cli.interrupts)
+                raise click.ClickException(INTERRUPTED) from None
             from rigctl.cli.errors import as_click_error
 
             raise as_click_error(exc) from exc

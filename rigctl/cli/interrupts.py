@@ -12,24 +12,49 @@ as control is back there (a profile function, ``sys.setprofile``, on that frame'
 returned, and the command ends as a Ctrl-C ends it anywhere else (one line; its partial output removed, or kept
 resumable, as the command says). An interrupt swallowed outside the main thread, or with no Python caller, is raised
 again in the main thread a moment later (``_thread.interrupt_main``).
+
+C code can also turn a Ctrl-C into an error of its own: a Cython module whose import was interrupted raises
+``ImportError: Failed to import 'zlib.decompress' - cannot initialise module strings`` (the ``KeyboardInterrupt``
+cleared, not chained), which a loaded CI run met as ``rigctl sim dataset``'s "internal error (a bug in rigctl)" after
+a Ctrl-C in its first second. :func:`keep_ctrl_c` also counts each Ctrl-C as it is delivered (its ``SIGINT`` handler
+raises the ``KeyboardInterrupt`` as Python's does), and :func:`is_interrupt` takes any exception that ends a command
+after one as the Ctrl-C: the command ends as interrupted, in one line.
 """
 
 from __future__ import annotations
 
 import _thread
+import signal
 import sys
 import threading
 from collections.abc import Callable
 from types import FrameType
 from typing import Literal
 
-__all__ = ["keep_ctrl_c", "REDELIVER_S"]
+__all__ = ["keep_ctrl_c", "is_interrupt", "REDELIVER_S"]
 
 #: a profile function's events (``sys.setprofile``)
 ProfileEvent = Literal["call", "return", "c_call", "c_return", "c_exception"]
 
 #: how long after a swallowed Ctrl-C it is raised again in the main thread where its caller cannot be found (s)
 REDELIVER_S = 0.01
+
+
+#: Ctrl-Cs delivered to this process since :func:`keep_ctrl_c` (its SIGINT handler counts them)
+_CTRL_C = {"delivered": 0}
+
+
+def _count_and_raise(signum: int, frame: FrameType | None) -> None:
+    """SIGINT: counted, then Python's own handler (``KeyboardInterrupt`` in the main thread's running code)."""
+    _CTRL_C["delivered"] += 1
+    signal.default_int_handler(signum, frame)
+
+
+def is_interrupt(exc: BaseException) -> bool:
+    """True when ``exc`` ends a command because of a Ctrl-C: a ``KeyboardInterrupt``, or any exception raised once a
+    Ctrl-C has been delivered to this process (see the module's text: C code may have turned it into its own
+    error). Without :func:`keep_ctrl_c` (an in-process run) only the first."""
+    return isinstance(exc, KeyboardInterrupt) or _CTRL_C["delivered"] > 0
 
 
 def _raise_on_return_to(target: FrameType) -> None:
@@ -56,8 +81,12 @@ def _redeliver_later() -> None:
 def keep_ctrl_c() -> None:
     """Install the hook (``sys.unraisablehook``, wrapping the one in place): an unraisable ``KeyboardInterrupt`` is
     not printed but raised again once C code has returned to its Python caller (see the module's text); every other
-    unraisable exception goes to the previous hook. Idempotent. Called by the ``rigctl`` entries (the console script,
+    unraisable exception goes to the previous hook. And, in the main thread where SIGINT has Python's own handler,
+    the handler that counts each Ctrl-C (:func:`is_interrupt`). Idempotent. Called by the ``rigctl`` entries (the console script,
     ``python -m rigctl``, the tests' preloaded launcher), not by in-process runs."""
+    if threading.current_thread() is threading.main_thread() \
+            and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _count_and_raise)
     previous: Callable[[sys.UnraisableHookArgs], object] = sys.unraisablehook
     if getattr(previous, "_rigctl_keeps_ctrl_c", False):
         return

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from rigctl.acquisition.protocol import MAX_PLAN_TRIALS
+from rigctl.cli.interrupts import is_interrupt
 from rigctl.cli.jsonout import json_text
 from rigctl.cli.outputs import HDF5_SUFFIXES, UsageProblem, check_output
 from rigctl.cli.progress import bars, progress_option, show_bars
@@ -91,14 +92,13 @@ def dataset(protocol, out, trials_per_condition, seed, workers, compression, sta
                                        compression=None if compression == "none" else compression,
                                        overwrite=overwrite, resume=resume)
     except KeyboardInterrupt:
-        if not Path(out).exists():  # interrupted before the file was made: nothing to keep or continue
-            raise click.ClickException(f"interrupted before {out} was made: nothing was written") from None
-        raise click.ClickException(f"interrupted: the trials rendered so far are kept in {out}; continue with "
-                                   f"`rigctl sim dataset {protocol} --out {out} --resume`") from None
-    except ProtocolError as exc:
-        raise click.ClickException(str(exc)) from None
-    except (FileExistsError, TypeError, ValueError) as exc:
-        raise click.ClickException(str(exc)) from None
+        raise _interrupted(out, protocol) from None
+    except Exception as exc:
+        if is_interrupt(exc):  # a Ctrl-C that C code turned into its own error (an import's, rigctl.cli.interrupts)
+            raise _interrupted(out, protocol) from None
+        if isinstance(exc, (ProtocolError, FileExistsError, TypeError, ValueError)):
+            raise click.ClickException(str(exc)) from None
+        raise
     if as_json:
         click.echo(json_text(summary))
     else:
@@ -107,3 +107,11 @@ def dataset(protocol, out, trials_per_condition, seed, workers, compression, sta
         click.echo(f"{summary['n_trials']} trials, {summary['trial_seconds']:.0f} s of trials in "
                    f"{summary['wall_s']:.1f} s ({summary['realtime_factor']:.0f}x real time, "
                    f"{where}) -> {summary['path']} ({summary['bytes'] / 1e6:.1f} MB)")
+
+
+def _interrupted(out, protocol) -> click.ClickException:
+    """The line a Ctrl-C ends ``sim dataset`` with: nothing written, or the trials so far kept and how to go on."""
+    if not Path(out).exists():  # interrupted before the file was made: nothing to keep or continue
+        return click.ClickException(f"interrupted before {out} was made: nothing was written")
+    return click.ClickException(f"interrupted: the trials rendered so far are kept in {out}; continue with "
+                                f"`rigctl sim dataset {protocol} --out {out} --resume`")
