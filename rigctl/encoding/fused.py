@@ -24,8 +24,9 @@ checks with a scalar tail, about as long as the SA steps), then each population 
 in one contiguous loop (float32 SA lanes 16 at a time as explicit vectors, :func:`_sa_vec_one`: LLVM's own
 vectoriser kept them in 256-bit registers, the one-thread kernel ~20 % slower). The spike times are decoded from the
 bitmaps a word at a time (:mod:`rigctl.encoding.bitmaps`: no branch on how many spikes a word holds). Blocks of
-trials run in parallel on threads of ours: the kernel's one (serial) build, the next block of trials on each of
-``numba.get_num_threads()`` threads in turn (it releases the GIL). No ``parallel=True`` build: it took ~2.4x the
+trials run in parallel on threads of ours: the kernel's one (serial) build, once on each of
+``numba.get_num_threads()`` threads (it releases the GIL), each claiming the next block from an atomic counter
+(:func:`~rigctl.encoding.llvm_ops.claim`). No ``parallel=True`` build: it took ~2.4x the
 compile time of the serial one (12.2 against 5.1 s of CPU, on the first encoding of an installation) and ran 128
 trials x 6 s x 18 taxels in the same CPU time (SA: 12-15 against 13-14 ms). Trials are sorted by length so a block's
 trials end together.
