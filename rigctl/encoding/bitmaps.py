@@ -19,7 +19,7 @@ from numba.core import config
 from numba.cpython.unsafe.numbers import trailing_zeros
 from numba.extending import intrinsic, overload
 
-from rigctl.encoding.llvm_ops import claim, popcount
+from rigctl.encoding.llvm_ops import claim, popcount, splat, vector_at
 
 __all__ = ["WORD", "HAS_COMPRESS", "word_times", "decode_times"]
 
@@ -54,15 +54,8 @@ def _byte_times(typingctx, out, pos, lut, byte, base, dt):  # pragma: no cover -
         lut_p = builder.gep(context.make_array(t_lut)(context, builder, a_lut).data,
                             [builder.mul(a_byte, ir.Constant(a_byte.type, 8))])
         k = builder.load(builder.bitcast(lut_p, vd.as_pointer()), align=8)
-
-        def splat(x):
-            v = ir.Constant(vd, ir.Undefined)
-            for i in range(8):
-                v = builder.insert_element(v, x, ir.Constant(ir.IntType(32), i))
-            return v
-        t = builder.fmul(builder.fadd(splat(a_base), k), splat(a_dt))
-        out_p = builder.gep(context.make_array(t_out)(context, builder, a_out).data, [a_pos])
-        builder.store(t, builder.bitcast(out_p, vd.as_pointer()), align=8)
+        t = builder.fmul(builder.fadd(splat(builder, a_base, vd), k), splat(builder, a_dt, vd))
+        builder.store(t, vector_at(context, builder, t_out, a_out, a_pos, vd), align=8)
         return context.get_dummy_value()
     return sig, codegen
 
@@ -101,19 +94,13 @@ def word_times(typingctx, out, pos, word, base, dt):  # pragma: no cover - compi
                                          builder.bitcast(a_word, ir.VectorType(ir.IntType(1), 32)),
                                          ir.Constant(v32i8, [0] * 32)])
         undef = ir.Constant(v32i8, ir.Undefined)
-
-        def splat(x):
-            one = builder.insert_element(ir.Constant(v16d, ir.Undefined), x, ir.Constant(i32, 0))
-            return builder.shuffle_vector(one, ir.Constant(v16d, ir.Undefined), ir.Constant(ir.VectorType(i32, 16),
-                                                                                             [0] * 16))
-        base_v, dt_v = splat(a_base), splat(a_dt)
-        data = context.make_array(signature.args[0])(context, builder, a_out).data
+        base_v, dt_v = splat(builder, a_base, v16d), splat(builder, a_dt, v16d)
 
         def store(half, at):
             b = builder.shuffle_vector(packed, undef, ir.Constant(ir.VectorType(i32, 16), list(range(16 * half,
                                                                                                   16 * half + 16))))
             t = builder.fmul(builder.fadd(base_v, builder.uitofp(b, v16d)), dt_v)
-            builder.store(t, builder.bitcast(builder.gep(data, [at]), v16d.as_pointer()), align=8)
+            builder.store(t, vector_at(context, builder, signature.args[0], a_out, at, v16d), align=8)
         store(0, a_pos)
         n = builder.ctpop(a_word)
         with builder.if_then(builder.icmp_unsigned(">", n, ir.Constant(i32, 16)), likely=False):

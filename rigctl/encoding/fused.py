@@ -63,7 +63,7 @@ from numba.extending import intrinsic, overload
 from rigctl.core.encoding_model import MODEL_RATE_HZ, RA_CUTOFF_HZ
 from rigctl.encoding.bitmaps import WORD, decode_times
 from rigctl.encoding.filters import lowpass_coefficients
-from rigctl.encoding.llvm_ops import claim, popcount
+from rigctl.encoding.llvm_ops import claim, popcount, splat, vector_at
 from rigctl.encoding.spikes import SpikeTrains
 
 __all__ = ["FusedState", "FusedResult", "run_fused", "on_threads", "BLOCK_TRIALS"]
@@ -102,13 +102,13 @@ def _sa_step_impl(v0, u0, i_in, kc):  # pragma: no cover - compiled by numba
     return exact
 
 
-#: float32 SA lanes stepped at once by :func:`sa_vec_one` (one 512-bit register where the CPU has AVX-512; LLVM splits
-#: it into two 256-bit ones elsewhere): the block's lane arrays are padded to a multiple of it
+#: float32 SA lanes stepped at once by :func:`_sa_vec_one` (one 512-bit register where the CPU has AVX-512; LLVM
+#: splits it into two 256-bit ones elsewhere): the block's lane arrays are padded to a multiple of it
 _SA_VEC = 16
 
 
 def _sa_vec_codegen(context, builder, signature, args, per_lane):  # pragma: no cover - compiled by numba
-    """The body of :func:`sa_vec_one` and :func:`sa_vec_lanes`: :func:`_sa_lane`'s float32 operations on ``_SA_VEC``
+    """The body of :func:`_sa_vec_one` and :func:`_sa_vec_lanes`: :func:`_sa_lane`'s float32 operations on ``_SA_VEC``
     lanes as explicit LLVM vector operations (the same IEEE products, sums and compare, no contraction: bit for bit
     the scalar lane's results)."""
     vv, uu, msk, idx, xb, ix, g, kc, c, d, v_peak, bit = args
@@ -118,18 +118,13 @@ def _sa_vec_codegen(context, builder, signature, args, per_lane):  # pragma: no 
     zeros = ir.Constant(vi, [0] * _SA_VEC)
 
     def ptr(aty, aval, i, vty):
-        data = context.make_array(aty)(context, builder, aval).data
-        return builder.bitcast(builder.gep(data, [i]), vty.as_pointer())
-
-    def splat(x, vty):
-        one = builder.insert_element(ir.Constant(vty, ir.Undefined), x, ir.Constant(i32, 0))
-        return builder.shuffle_vector(one, ir.Constant(vty, ir.Undefined), zeros)
+        return vector_at(context, builder, aty, aval, i, vty)
 
     def k(i):
-        return splat(builder.extract_value(kc, i), vf)
+        return splat(builder, builder.extract_value(kc, i), vf)
 
     x = builder.load(ptr(t_xb, xb, ix, vf), align=4)
-    gv = builder.load(ptr(t_g, g, idx, vf), align=4) if per_lane else splat(g, vf)
+    gv = builder.load(ptr(t_g, g, idx, vf), align=4) if per_lane else splat(builder, g, vf)
     i_in = builder.fmul(x, gv)
     p_v, p_u, p_m = ptr(t_vv, vv, idx, vf), ptr(t_uu, uu, idx, vf), ptr(t_msk, msk, idx, vi)
     v0, u0 = builder.load(p_v, align=4), builder.load(p_u, align=4)
@@ -137,11 +132,11 @@ def _sa_vec_codegen(context, builder, signature, args, per_lane):  # pragma: no 
     v1 = builder.fadd(builder.fmul(v0, builder.fadd(builder.fmul(k(4), v0), k(5))), w)
     v2 = builder.fadd(builder.fmul(v1, builder.fadd(builder.fmul(k(4), v1), k(5))), w)
     u1 = builder.fadd(builder.fmul(k(7), u0), builder.fmul(k(8), v2))
-    s = builder.fcmp_ordered(">=", v2, splat(v_peak, vf))
-    builder.store(builder.select(s, splat(c, vf), v2), p_v, align=4)
-    builder.store(builder.select(s, builder.fadd(u1, splat(d, vf)), u1), p_u, align=4)
+    s = builder.fcmp_ordered(">=", v2, splat(builder, v_peak, vf))
+    builder.store(builder.select(s, splat(builder, c, vf), v2), p_v, align=4)
+    builder.store(builder.select(s, builder.fadd(u1, splat(builder, d, vf)), u1), p_u, align=4)
     m = builder.load(p_m, align=4)
-    builder.store(builder.or_(m, builder.select(s, splat(bit, vi), zeros)), p_m, align=4)
+    builder.store(builder.or_(m, builder.select(s, splat(builder, bit, vi), zeros)), p_m, align=4)
     return context.get_dummy_value()
 
 
@@ -160,10 +155,10 @@ def _sa_vec_one(typingctx, vv, uu, msk, idx, xb, ix, g, kc, c, d, v_peak, bit): 
 
 @intrinsic
 def _sa_vec_lanes(typingctx, vv, uu, msk, idx, xb, ix, g, kc, c, d, v_peak, bit):  # pragma: no cover - numba
-    """:func:`sa_vec_one` with each lane's own gain, ``g[idx:idx + _SA_VEC]`` (a float32 array laid out as ``vv``)."""
+    """:func:`_sa_vec_one` with each lane's own gain, ``g[idx:idx + _SA_VEC]`` (a float32 array laid out as ``vv``)."""
     return _sa_vec_sig(vv, uu, msk, idx, xb, ix, g, kc, c, d, v_peak, bit), partial(_sa_vec_codegen, per_lane=True)
 
-#: bytes of one SIMD register (AVX2): the pre-pass's explicit vectors (:func:`norm_vec`)
+#: bytes of one SIMD register (AVX2): the pre-pass's explicit vectors (:func:`_norm_vec`)
 _VEC_BYTES = 32
 
 
@@ -184,8 +179,7 @@ def _norm_vec(typingctx, src, i_src, off, scl, i_ch, dst, i_dst):  # pragma: no 
         vi = ir.VectorType(context.get_value_type(t_src.dtype), width)
 
         def ptr(aty, aval, idx, vty):
-            data = context.make_array(aty)(context, builder, aval).data
-            return builder.bitcast(builder.gep(data, [idx]), vty.as_pointer())
+            return vector_at(context, builder, aty, aval, idx, vty)
 
         raw = builder.load(ptr(t_src, a_src, a_is, vi), align=t_src.dtype.bitwidth // 8)
         x = builder.sitofp(raw, vf) if t_src.dtype.signed else builder.uitofp(raw, vf)
@@ -273,8 +267,8 @@ def _norm_row_impl(xf, i_src, off, scl, dst, i_dst, n_ch):  # pragma: no cover -
 
 def _sa_steps(vv, uu, msk, gg, p, n_l, n_lp, xb, ix, g0, kc, c, d, v_peak, bit, zero32, zero_sa):  # pragma: no cover
     """One step of population p's lanes (:func:`_sa_lane` each) with input ``xb[ix + j]`` times the one gain ``g0``
-    (when not 0: a constant, not a load a lane) or each lane's ``gg[p, j]``. float32: ``SA_VEC`` lanes at once
-    (:func:`sa_vec_one`), every lane of the padded ``n_lp``; float64: lane by lane, the ``n_l`` real ones."""
+    (when not 0: a constant, not a load a lane) or each lane's ``gg[p, j]``. float32: ``_SA_VEC`` lanes at once
+    (:func:`_sa_vec_one`), every lane of the padded ``n_lp``; float64: lane by lane, the ``n_l`` real ones."""
     raise NotImplementedError
 
 

@@ -1,6 +1,7 @@
 """LLVM one-instruction operations the encoder's numba kernels share (:mod:`rigctl.encoding.fused`,
-:mod:`rigctl.encoding.bitmaps`). numba's on-disk cache knows only the source file of the function it caches: a
-change here needs those files' caches cleared (or their files touched), so nothing here is more than an instruction.
+:mod:`rigctl.encoding.bitmaps`), and the two IR pieces their explicit-vector intrinsics build with (:func:`splat`,
+:func:`vector_at`). numba's on-disk cache knows only the source file of the function it caches: a change here needs
+those files' caches cleared (or their files touched), so nothing here is more than an instruction.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["popcount", "claim"]
+__all__ = ["popcount", "claim", "splat", "vector_at"]
 
 
 @intrinsic
@@ -41,3 +42,17 @@ def claim(typingctx, counter):  # pragma: no cover - compiled by numba
         data = context.make_array(signature.args[0])(context, builder, args[0]).data
         return builder.atomic_rmw("add", data, ir.Constant(ir.IntType(64), 1), "monotonic")
     return sig, codegen
+
+
+def splat(builder: ir.IRBuilder, x: ir.Value, vty: ir.VectorType) -> ir.Value:
+    """Codegen: the vector of type ``vty`` with ``x`` in every lane (an insert and a zero-mask shuffle)."""
+    one = builder.insert_element(ir.Constant(vty, ir.Undefined), x, ir.Constant(ir.IntType(32), 0))
+    return builder.shuffle_vector(one, ir.Constant(vty, ir.Undefined),
+                                  ir.Constant(ir.VectorType(ir.IntType(32), vty.count), [0] * vty.count))
+
+
+def vector_at(context, builder: ir.IRBuilder, aty, aval: ir.Value, idx: ir.Value, vty: ir.VectorType) -> ir.Value:
+    """Codegen: a pointer to a ``vty`` vector at flat element ``idx`` of the numba array ``aval`` (of type ``aty``,
+    C-contiguous: element idx of its data, whatever its dimensions); no bounds check."""
+    data = context.make_array(aty)(context, builder, aval).data
+    return builder.bitcast(builder.gep(data, [idx]), vty.as_pointer())
