@@ -18,8 +18,10 @@ import pytest
 from rigctl.encoding import bitmaps
 from rigctl.encoding.bitmaps import word_times
 from rigctl.encoding.fused import run_fused
+from rigctl.encoding.izhikevich import TONIC_SPIKING
 
-A, B, C, D, V_PEAK = 0.02, 0.2, -65.0, 6.0, 30.0
+#: the paper's tonic-spiking SA neuron (run_fused's default izhikevich parameters)
+A, B, C, D, V_PEAK = (TONIC_SPIKING.a, TONIC_SPIKING.b, TONIC_SPIKING.c, TONIC_SPIKING.d, TONIC_SPIKING.v_peak)
 
 
 def _ragged_readings(seed: int, lengths: list[int]) -> tuple[np.ndarray, np.ndarray]:
