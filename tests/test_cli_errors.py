@@ -500,3 +500,29 @@ def test_plate_prompt_callables():
     assert len(said) == 1 and "Mount texture plate G on the drum" in said[0] and "confirm" not in said[0]
     skip = plate_prompt("skip", hardware=True, stdin_is_tty=False)
     OperatorMounter(skip).mount("A", PAPER_TEXTURES)  # returns without input() (pytest's stdin would raise)
+
+
+@pytest.mark.parametrize("args, suggestion", [
+    (["aquire"], "'acquire'"), (["exprot"], "'export'"), (["export", "nbw"], "'nwb'"), (["sim", "datset"], "'dataset'"),
+    (["xyzzy"], None),
+])
+def test_a_mistyped_command_names_the_nearest_one(args, suggestion):
+    """A mistyped command is one usage line (exit 2) that names the nearest command, at every level (issue 79 item 7:
+    ``rigctl aquire`` said only "No such command"); a name like no command's gets no guess."""
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 2 and "Traceback" not in r.output, r.output
+    lines = [line for line in r.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and f"No such command {args[-1]!r}" in lines[0], r.output
+    if suggestion:
+        assert lines[0].split("did you mean ")[1].startswith(suggestion), r.output
+    else:
+        assert "did you mean" not in lines[0], r.output
+
+
+def test_a_group_without_its_command_shows_its_help():
+    """``rigctl export`` alone prints the group's help as click lays it out (it was squeezed into one error line)."""
+    r = CliRunner().invoke(main, ["export"], prog_name="rigctl")
+    assert r.exit_code == 2, r.output
+    assert r.output.startswith("Usage: rigctl export") and "Commands:" in r.output and "Error" not in r.output
+    assert {"events", "nwb", "trials"} <= {line.split()[0] for line in r.output.split("Commands:")[1].splitlines()
+                                           if line.strip()}

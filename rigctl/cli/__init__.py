@@ -57,7 +57,7 @@ SHORT_HELP = {
     "import": "Import recordings of any sensor (CSV, NPY/NPZ, MAT, NWB, XDF) into a session file.",
     "import-fabricslide": "Import the FabricSlide recordings into a session file.",
     "gui": "Start the desktop app.",
-    "export": "Export a session (and its spike trains) as NWB.",
+    "export": "Export a session: NWB, spike events (Tonic's layout), a per-trial layout.",
     "protocols": "List the built-in protocols (run one by name).",
     "firmware": "Build the boards' firmware images from the installed sources (for flashing).",
     "doctor": "Bring-up checks on the rig: one line each, pass/fail/skip and the fix.",
@@ -81,7 +81,24 @@ def _quiet_broken_pipe() -> None:
     raise SystemExit(1)
 
 
-class LazyGroup(click.Group):
+class SuggestingGroup(click.Group):
+    """A command group whose unknown command names its nearest command ("did you mean"), as click does for options
+    (click suggests nothing for commands: ``rigctl aquire`` said only "No such command")."""
+
+    def resolve_command(self, ctx, args):
+        try:
+            return super().resolve_command(ctx, args)
+        except click.UsageError:
+            import difflib
+
+            name = args[0] if args else ""
+            close = difflib.get_close_matches(name, self.list_commands(ctx), n=1, cutoff=0.6)
+            if not close or name.startswith("-"):
+                raise
+            raise click.UsageError(f"No such command {name!r}; did you mean {close[0]!r}?", ctx) from None
+
+
+class LazyGroup(SuggestingGroup):
     def list_commands(self, ctx):
         return sorted(COMMANDS)
 
@@ -102,6 +119,8 @@ class LazyGroup(click.Group):
         ``--debug``."""
         try:
             return super().invoke(ctx)
+        except click.exceptions.NoArgsIsHelpError:  # a group with no command (`rigctl export`): its help, whole
+            raise
         except click.UsageError as exc:  # one line too: click would add the usage and a 'Try --help' line
             from rigctl.cli.errors import one_line
 

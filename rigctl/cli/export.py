@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import click
 
+from rigctl.cli import SuggestingGroup
 from rigctl.cli.outputs import UsageProblem, check_output
 from rigctl.cli.progress import bars, progress_option, show_bars
 from rigctl.cli.ranges import SEED
 
 
-@click.group("export")
+@click.group("export", cls=SuggestingGroup)
 def export():
     """Write a session in a format other tools read: NWB, spike events (Tonic's layout), a per-trial layout."""
 
@@ -26,11 +27,23 @@ def export():
 @progress_option
 @click.option("--keep-nonfinite", is_flag=True,
               help="Export trials whose force or speed readings hold NaN or inf (default: excluded).")
-def nwb(session, encoded, variants, out, overwrite, progress, keep_nonfinite):
+@click.option("--experimenter", "experimenters", multiple=True, metavar="'LAST, FIRST'",
+              help="Who ran the session (repeat for several), as NWB and DANDI want it: 'Last, First'.")
+@click.option("--institution", default=None, help="The institution where the session was recorded.")
+@click.option("--lab", default=None, help="The lab where the session was recorded.")
+def nwb(session, encoded, variants, out, overwrite, progress, keep_nonfinite, experimenters, institution, lab):
     """Export SESSION as an NWB file: taxel readings (TimeSeries), drum and load-cell traces, the trials table, the
     sensor and rig description, and with --encoded the SA/RA spike trains as a Units table (docs/nwb.md)."""
+    from pathlib import Path
+
     from rigctl.storage.encoded import NotEncodedError
-    from rigctl.storage.nwb import NwbExportError, check_spike_variants, estimate_nwb_bytes, export_nwb
+    from rigctl.storage.nwb import (
+        NwbExportError,
+        NwbExportParams,
+        check_spike_variants,
+        estimate_nwb_bytes,
+        export_nwb,
+    )
     from rigctl.storage.session import SessionError
     from rigctl.storage.validate import TrialsExcluded
 
@@ -51,8 +64,11 @@ def nwb(session, encoded, variants, out, overwrite, progress, keep_nonfinite):
     try:
         with warnings.catch_warnings(record=True) as caught, bars(show_bars(progress), leave=False) as on_event:
             warnings.simplefilter("always")
-            summary = export_nwb(session, out, encoded_path=encoded, variants=vlist, progress=on_event,
-                                 overwrite=overwrite, keep_nonfinite=keep_nonfinite)
+            params = NwbExportParams(encoded_path=None if encoded is None else Path(encoded),
+                                     variants=tuple(vlist) if vlist else None, overwrite=overwrite,
+                                     keep_nonfinite=keep_nonfinite, experimenter=tuple(experimenters),
+                                     institution=institution, lab=lab)
+            summary = export_nwb(session, out, progress=on_event, params=params)
     except (NwbExportError, SessionError, NotEncodedError) as exc:
         raise click.ClickException(str(exc)) from None
     for w in caught:  # one line each (excluded trials), as rigctl encode shows them

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import click
 
+from rigctl.cli import SuggestingGroup
 from rigctl.cli.ranges import SEED, floats
 from rigctl.cli.rig_flags import FAULT_FORMS, check_truth_log, parse_injections
 from rigctl.core.faults import FAULTS, INSTANT_FAULTS
@@ -42,7 +43,7 @@ def start_sim_process(port_dir: str, *, texture: str = "A", seed: int = 0) -> tu
     return proc, ports
 
 
-@click.group(invoke_without_command=True)
+@click.group(cls=SuggestingGroup, invoke_without_command=True)
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the model's noise and drum angle.")
 @click.option("--texture", default=None,
               help="Texture plate mounted on the drum: a label of the paper's A-P (default A), or of the replayed "

@@ -205,12 +205,18 @@ class NwbExportParams:
     overwrite : replace an existing output (False: FileExistsError).
     keep_nonfinite : export trials whose force or speed traces hold NaN/inf (default: excluded, as by the
         validator).
+    experimenter, institution, lab : the NWB file's ``experimenter`` (names, "Last, First" as DANDI asks),
+        ``institution`` and ``lab``; empty / None: the rig config's keys of those names if the session's config has
+        them, else left out (never a placeholder).
     """
 
     encoded_path: Path | None = None
     variants: tuple[str, ...] | None = None
     overwrite: bool = False
     keep_nonfinite: bool = False
+    experimenter: tuple[str, ...] = ()
+    institution: str | None = None
+    lab: str | None = None
 
 
 @dataclass
@@ -333,7 +339,7 @@ def _export(s: Any, session_path: Any, out_path: Path, params: NwbExportParams, 
             timeline: _Timeline, progress: ProgressCallback | None, beside: Any) -> NwbSummary:
     """The NWB file of ``timeline``'s trials; with ``beside``, renamed into place only if they are the validator's
     (else :class:`_Guessed`, the part file removed)."""
-    nwb = _new_nwbfile(s, out_path)
+    nwb = _new_nwbfile(s, out_path, params)
     summary = NwbSummary(out_path, n_trials=len(timeline.ids), n_samples=int(sum(timeline.n)),
                          n_channels=s.layout.n_channels, rate_hz=float(s.layout.sample_rate_hz))
     with output_file(out_path, overwrite=params.overwrite, kind="nwb") as target:
@@ -385,13 +391,17 @@ def _timeline(s: Any, session_path: Any, keep_nonfinite: bool = False, ids: list
     return _Timeline(ids, n, starts, starts + np.asarray(n) / rate, lead, attrs)
 
 
-def _new_nwbfile(s: Any, out_path: Path) -> Any:
-    """The NWBFile with its session metadata, subject (the artificial sensor) and devices."""
+def _new_nwbfile(s: Any, out_path: Path, params: NwbExportParams) -> Any:
+    """The NWBFile with its session metadata (:class:`NwbExportParams`' experimenter, institution and lab), subject
+    (the artificial sensor) and devices."""
     from pynwb import NWBFile
     from pynwb.file import Subject
 
     layout = s.layout
     cfg = s.rig_config if isinstance(s.rig_config, dict) else {}
+    experimenter = list(params.experimenter) or ([str(cfg["experimenter"])] if cfg.get("experimenter") else None)
+    institution = params.institution or (str(cfg["institution"]) if cfg.get("institution") else None)
+    lab = params.lab or (str(cfg["lab"]) if cfg.get("lab") else None)
     nwb = NWBFile(
         session_description=f"rigctl session: protocol {s.protocol_name or '?'} on {cfg.get('mode', 'a rig')}",
         identifier=str(s.attrs.get("session_id") or out_path.stem),
@@ -400,8 +410,7 @@ def _new_nwbfile(s: Any, out_path: Path) -> Any:
                                "trial (rigctl; Invariant neuromorphic representations of tactile stimuli ...)",
         source_script="rigctl export nwb", source_script_file_name="rigctl",
         keywords=["touch", "tactile sensor", "texture", "taxel", "neuromorphic", "Izhikevich"],
-        institution=str(cfg.get("institution", "unknown")),
-        experimenter=[str(cfg.get("experimenter", "rigctl"))],
+        institution=institution, experimenter=experimenter, lab=lab,
     )
     # NWB expects a subject: here the "subject" touched is an artificial sensor, no animal
     nwb.subject = Subject(subject_id=layout.name or "taxel_sensor", species="none (artificial tactile sensor)",

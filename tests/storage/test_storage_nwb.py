@@ -344,3 +344,27 @@ def test_the_blocks_by_running_sum_are_the_greedy_item_by_item_blocks():
             for given in (lengths, list(map(int, lengths)), lengths.astype(np.uint32)):
                 assert _blocks(given, limit) == greedy(lengths, limit), (case, limit)
     assert _blocks([], 4) == [] and _blocks([1] * 10, 4) == [(0, 4), (4, 8), (8, 10)]
+
+
+def test_the_command_sets_experimenter_institution_and_lab(recorded, tmp_path):
+    """``export nwb --experimenter --institution --lab`` (DANDI asks for them; issue 79 item 7): the file carries what
+    was given, and without them nothing made up (they were "rigctl" and "unknown")."""
+    from click.testing import CliRunner
+    from pynwb import NWBHDF5IO
+
+    from rigctl.cli import main
+
+    out = tmp_path / "meta.nwb"
+    r = CliRunner().invoke(main, ["export", "nwb", str(recorded), "--out", str(out), "--no-progress",
+                                  "--experimenter", "Doe, Jane", "--experimenter", "Roe, Rick",
+                                  "--institution", "Uni of Somewhere", "--lab", "Touch Lab"])
+    assert r.exit_code == 0, r.output
+    with NWBHDF5IO(str(out), "r") as io:
+        nwb = io.read()
+        assert tuple(nwb.experimenter) == ("Doe, Jane", "Roe, Rick")
+        assert (nwb.institution, nwb.lab) == ("Uni of Somewhere", "Touch Lab")
+    plain = tmp_path / "plain.nwb"
+    export_nwb(recorded, plain)
+    with NWBHDF5IO(str(plain), "r") as io:
+        nwb = io.read()
+        assert nwb.experimenter is None and nwb.institution is None and nwb.lab is None
