@@ -38,6 +38,7 @@ NOT_RUN = {
     ("docs/my-sensor.md", "import numpy as np\nfrom datetime import datetime"): "run-by",
     ("docs/my-sensor.md", "rigctl import logger__felt.csv"): "run-by",
     ("docs/guides/spiking-networks.md", "import snntorch"): "not-run",
+    ("docs/guides/spiking-networks.md", "pip install 'rigctl[nir]'"): "not-run",
     ("docs/guides/my-hardware.md", "rigctl acquire quick_check --rig csvboard --rig-option port=/dev/ttyUSB0"):
         "not-run",
 }
@@ -148,6 +149,8 @@ def _spiking_networks(runs, tmp_path, request) -> None:
     assert set(accuracy) == {"trained", "untrained_speed"}, out
     assert accuracy["trained"] > 3 * 100 / 16, out  # the trained cells' held-out trials: far above chance (16)
     assert (work / "back.enc.h5").is_file()
+    nir = next(r for r in runs if "readout_on_nir.py" in r.block.text and r.block.lang == "sh").output
+    assert "same decision as rigctl on 100% of 256 trials" in nir, nir  # issue 79 item 4: the NIR readout
 
 
 def _nothing(runs, tmp_path, request) -> None:

@@ -198,3 +198,73 @@ def trials(session, encoded, layouts, variant, out, overwrite, splits, seed, pro
         extra_files=_splits_writer(encoded, session, seed) if splits else None, progress=on_event), value_errors=True)
     click.echo(f"wrote {out}: {summary.n_trials} trials, {summary.n_files} files"
                + (", splits.json" if splits else ""))
+
+
+@export.command("nir")
+@click.argument("model", type=click.Path(exists=True, dir_okay=False))
+@click.option("--out", "out", type=click.Path(dir_okay=False, writable=True), required=True,
+              help="The NIR file to write (.nir).")
+@click.option("--pcs", "n_pcs", type=click.IntRange(1, 100_000), default=None,
+              help="Principal components the readout uses (default: the model's own).")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out NIR file.")
+def nir(model, out, n_pcs, overwrite):
+    """MODEL's readout (a model file of `rigctl analyze --save-model`) as a NIR graph: the window features of a trial
+    (each SA train's spike rate and RA train's spike count per window) -> Affine -> one score per texture, the
+    largest the prediction; the graph's metadata says how to count the input (docs/guides/spiking-networks.md)."""
+    from rigctl.analysis.readout import affine_readout
+    from rigctl.storage.model_file import ModelFileError, load_model, read_model_info
+    from rigctl.storage.nir_export import NirExportError, write_readout_nir
+
+    check_output(out, overwrite=overwrite, inputs=(model,), suffixes=(".nir",), kind="nir")
+    try:
+        info = read_model_info(model).get("info", {})
+        pipeline = load_model(model)
+        readout = affine_readout(pipeline, n_pcs)
+    except (ModelFileError, TypeError) as exc:
+        raise click.ClickException(str(exc)) from None
+    except ValueError as exc:
+        raise UsageProblem(f"--pcs: {exc}") from None
+    meta = _readout_metadata(pipeline, readout, info)
+    try:
+        write_readout_nir(out, readout.weight, readout.bias, metadata=meta, overwrite=overwrite)
+    except NirExportError as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"wrote {out}: {readout.weight.shape[1]} window features -> {readout.weight.shape[0]} textures "
+               f"({meta['variant']}, {readout.n_pcs} PCs)")
+
+
+#: (real-time, speed-scaled) -> how a variant's SA spike rate is counted (rigctl.encoding.features)
+_SA_RATE = {
+    (False, False): "spikes in the window / window_s",
+    (False, True): "spikes in the speed-scaled window / window_s x (trial speed / reference speed): eq. 2",
+    (True, False): "spikes in the window / window_s, the trial's last n_windows windows (zero-padded before)",
+    (True, True): "spikes in the speed-scaled window / the real-time duration of that window",
+}
+
+
+def _readout_metadata(pipeline, readout, info: dict) -> dict:
+    """The NIR graph's metadata: what the input is and how to count it, the classes, where the model came from."""
+    from rigctl.core.version import __version__
+    from rigctl.storage.encoded import VARIANTS
+
+    features = pipeline[-2] if len(pipeline) > 1 else None
+    p = dict(getattr(features, "params_", {}) or {})
+    variant = str(getattr(pipeline[-1], "variant", None) or info.get("variant", "?"))
+    v = VARIANTS.get(variant)
+    realtime, speed_scaled = bool(v and v.realtime), bool(v and v.speed_scaled)
+    n_windows = p.get("n_windows_realtime") if realtime else (
+        p.get("n_windows_scaled") if speed_scaled else p.get("n_windows_unscaled"))
+    n_features = int(readout.weight.shape[1])
+    n_trains = n_features // int(n_windows) if n_windows else 0
+    return {
+        "producer": f"rigctl {__version__} export nir", "variant": variant, "n_pcs": int(readout.n_pcs),
+        "classes": [str(c) for c in readout.classes],
+        "input": ("train-major window features: for each SA train its spike rate in each window, then (not for "
+                  "real-time variants) for each RA train its spike count in each window"),
+        "sa_rate": _SA_RATE[(realtime, speed_scaled)],
+        "window_s": float(p.get("window_s", 0.1)), "n_windows": int(n_windows or 0),
+        "n_sa_trains": n_trains if realtime else n_trains // 2, "n_ra_trains": 0 if realtime else n_trains // 2,
+        "time_base": "speed-scaled (eq. 2: spike times x speed / reference speed)" if speed_scaled else "real time",
+        "output": "one score per class (metadata classes); the prediction is the class of the largest",
+        "model_session": str(info.get("session", "")),
+    }

@@ -47,7 +47,7 @@ __all__ = ["HDF5_SUFFIXES", "OutputError", "OutputLocked", "OutputWriteError", "
 
 #: the kinds of rigctl output :func:`existing_kind` recognises (``check_output(kind=)``), with their names in messages
 OUTPUT_KINDS = {"session": "rigctl session file", "encoded": "rigctl encoded file", "nwb": "NWB file",
-                "model": "rigctl model file", "curves": "rigctl analyze CSV (--csv)",
+                "model": "rigctl model file", "nir": "NIR graph (rigctl export nir)", "curves": "rigctl analyze CSV (--csv)",
                 "figure": "figure rigctl made (--plot, --confusion, --screenshot)"}
 #: kinds that hold data (a recording, its spike trains, a fitted model): never replaced by a writer of another kind,
 #: nor by a writer that names no kind
@@ -240,6 +240,8 @@ def existing_kind(path: str | os.PathLike[str]) -> str:
                 return "nwb"
             if "plan" in f and "protocol" in f:
                 return "session"
+            if "version" in f and isinstance(f.get("node"), h5py.Group) and "type" in f["node"]:
+                return "nir"
             return "hdf5"
     except Exception:  # noqa: BLE001 - h5py raises OSError, ValueError, RuntimeError, KeyError on damaged files
         return "other"
