@@ -9,7 +9,12 @@ Statistical Analysis"):
 * ``untrained_speed``, ``untrained_force``, ``untrained_speed_force``: the extrapolation task (train on speeds
   40/60/80 mm/s x forces 250/500 g: per texture and trained cell 75 trials train and 25 test; 25 test trials per
   texture from every untrained cell), one split whose test trials are divided by the cell they come from;
-  ``trained`` holds the held-out trials of the trained cells.
+  ``trained`` holds the held-out trials of the trained cells;
+* a velocity-profile session (its trials carry profile names: ``realtime_profiles``, the handheld blocks): Fig. 4's
+  tasks as ``rigctl analyze --task realtime`` draws them (``rt_offline``: k-fold CV over every trial;
+  ``rt_trained`` / ``rt_untrained``: train on a fraction of the trained profiles' trials, test on the rest of them /
+  on the untrained profiles' trials), and no speed or force extrapolation: a ramp's speed label is its mean, so its
+  "speed cell" is not the paper's.
 
 Each task is ``{"folds": [{"train": [trial ids], "test": [trial ids]}, ...]}`` (the extrapolation tasks: one fold,
 the same training trials). The file format is :mod:`rigctl.storage.splits_file`'s.
@@ -22,9 +27,26 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigctl.analysis.tasks import EXTRAPOLATION_CELLS, _extrapolation_draw, _extrapolation_plan, cv_split
+from rigctl.analysis.params import RealtimeParams
+from rigctl.analysis.tasks import (
+    EXTRAPOLATION_CELLS,
+    _extrapolation_draw,
+    _extrapolation_plan,
+    cv_split,
+    realtime_draw,
+    realtime_rng,
+)
 
-__all__ = ["PAPER_TRAIN_SPEEDS_MM_S", "PAPER_TRAIN_FORCES_G", "paper_splits"]
+__all__ = ["PAPER_TRAIN_SPEEDS_MM_S", "PAPER_TRAIN_FORCES_G", "CONSTANT_PROFILES", "paper_splits",
+           "has_profiles"]
+
+#: profile names that mean "no velocity profile" (a drum trial at one speed; an imported trial)
+CONSTANT_PROFILES = ("", "constant")
+
+
+def has_profiles(profile: Sequence[str] | np.ndarray | None) -> bool:
+    """Whether trials with these profile names are a velocity-profile session (any name but ``constant`` / empty)."""
+    return profile is not None and any(str(p) not in CONSTANT_PROFILES for p in np.asarray(profile).ravel())
 
 #: the extrapolation task's trained speeds (mm/s) and forces (g), Methods
 PAPER_TRAIN_SPEEDS_MM_S = (40.0, 60.0, 80.0)
@@ -53,7 +75,8 @@ def paper_splits(texture: Sequence[str] | np.ndarray, speed_mm_s: Sequence[float
                  per_texture: int = 500, k: int = 4,
                  train_speeds_mm_s: Sequence[float] = PAPER_TRAIN_SPEEDS_MM_S,
                  train_forces_g: Sequence[float] = PAPER_TRAIN_FORCES_G, n_train: int = 75,
-                 n_test: int = 25) -> dict[str, object]:
+                 n_test: int = 25, profile: Sequence[str] | np.ndarray | None = None,
+                 realtime: RealtimeParams | None = None) -> dict[str, object]:
     """The paper's tasks as lists of trial ids (one repetition, ``seed``; the analyses' repetition 0).
 
     Parameters
@@ -65,6 +88,9 @@ def paper_splits(texture: Sequence[str] | np.ndarray, speed_mm_s: Sequence[float
         repetition).
     per_texture, k : the CV draw (reduced to the smallest texture's count, as :func:`run_cv` does).
     train_speeds_mm_s, train_forces_g, n_train, n_test : the extrapolation task (the paper's by default).
+    profile : (n_trials,) velocity-profile names, or None: with any profile (:func:`has_profiles`), Fig. 4's tasks
+        ``rt_offline``, ``rt_trained``, ``rt_untrained`` (``realtime``: trained profiles, folds, train fraction;
+        :class:`~rigctl.analysis.params.RealtimeParams`' defaults) in place of the extrapolation tasks.
 
     Returns
     -------
@@ -99,6 +125,10 @@ def paper_splits(texture: Sequence[str] | np.ndarray, speed_mm_s: Sequence[float
         counts["cv"] = {"per_texture": n_draw, "k": k}
     else:
         notes.append(f"cv: the smallest texture has {int(per.min()) if per.size else 0} trials, fewer than k={k}")
+    if has_profiles(profile):
+        _realtime_tasks(tex, np.asarray(profile).astype(str), ids, seed, realtime or RealtimeParams(), tasks, counts,
+                        notes)
+        return {"seed": int(seed), "tasks": tasks, "counts": counts, "notes": notes}
     try:
         cells, trained_cells, cat_of, (a_tr, a_te, u_te), info = _extrapolation_plan(
             _Labels(tex, spd, frc), train_speeds_mm_s, train_forces_g, None, None, n_train, n_test)
@@ -118,3 +148,36 @@ def paper_splits(texture: Sequence[str] | np.ndarray, speed_mm_s: Sequence[float
                                    "test_per_untrained_cell": u_te, "trained_speeds_mm_s": info["trained_speeds"],
                                    "trained_forces_g": info["trained_forces"]}
     return {"seed": int(seed), "tasks": tasks, "counts": counts, "notes": notes}
+
+
+def _realtime_tasks(tex: np.ndarray, profile: np.ndarray, ids: np.ndarray, seed: int, params: RealtimeParams,
+                    tasks: dict[str, object], counts: dict[str, object], notes: list[str]) -> None:
+    """Fig. 4's tasks of a velocity-profile session into ``tasks`` (:func:`realtime_draw`, repetition 0 of ``rigctl
+    analyze --task realtime --seed``)."""
+    if profile.shape != tex.shape:
+        raise ValueError(f"labels of unequal shapes: texture {tex.shape}, profile {profile.shape}")
+    present = set(profile.tolist())
+    trained = [p for p in params.train_profiles if p in present]
+    notes.append("a velocity-profile session: Fig. 4's tasks (rt_*, as analyze --task realtime draws them); no speed "
+                 "or force extrapolation (a ramp's speed label is its mean speed, not a speed cell)")
+    if not trained:
+        notes.append(f"rt_trained, rt_untrained: none of the trained profiles {', '.join(params.train_profiles)} "
+                     f"in the data (has {', '.join(sorted(present))})")
+    in_tr = np.isin(profile, trained)
+    _, per = np.unique(tex, return_counts=True)
+    if per.size and per.min() < params.k:
+        notes.append(f"rt_offline: the smallest texture has {int(per.min())} trials, fewer than k={params.k}")
+        return
+    folds, train, held, untrained = realtime_draw(tex, in_tr, params.k, params.train_fraction,
+                                                  realtime_rng(seed, 0))
+    tasks["rt_offline"] = {"folds": [{"train": _ids(ids, tr), "test": _ids(ids, te)} for tr, te in folds],
+                           "k": params.k}
+    if trained:
+        for name, test in (("rt_trained", held), ("rt_untrained", untrained)):
+            if test.size:
+                tasks[name] = {"folds": [{"train": _ids(ids, train), "test": _ids(ids, test)}]}
+            else:
+                notes.append(f"{name}: no test trials in these labels")
+    counts["realtime"] = {"trained_profiles": trained, "profiles": sorted(present), "k": params.k,
+                          "train_fraction": params.train_fraction,
+                          "trials_by_profile": {p: int(np.sum(profile == p)) for p in sorted(present)}}

@@ -42,6 +42,8 @@ from rigctl.core.progress import Stage
 
 __all__ = [
     "TASK_TITLES",
+    "realtime_draw",
+    "realtime_rng",
     "task_title",
     "EXTRAPOLATION_CELLS",
     "Curve",
@@ -638,11 +640,8 @@ def run_realtime(
 
     bar = Stage(progress, "realtime", repeats * len(vs), unit="fit")
     for r in range(repeats):
-        rng = np.random.default_rng([seed, 20_000 + r])
-        folds = _stratified_folds(fs.texture, k, int(rng.integers(2**31)))
-        tr_idx = _stratified_fraction(np.flatnonzero(in_tr), fs.texture, train_fraction, rng)
-        held = np.setdiff1d(np.flatnonzero(in_tr), tr_idx)
-        untr = np.flatnonzero(~in_tr)
+        rng = realtime_rng(seed, r)
+        folds, tr_idx, held, untr = realtime_draw(fs.texture, in_tr, k, train_fraction, rng)
         all_tr = _stratified_fraction(np.arange(fs.n_trials), fs.texture, train_fraction, rng)
         if new_session is not None:
             cal = _calibration_draw(new_session, calibration_per_texture, rng)
@@ -677,6 +676,25 @@ def run_realtime(
         res.add(Curve(task, v, acc, n_te, classes, np.asarray(cm, np.int64), min(headline_pcs, n)))
     res.settings.update({"n_pcs": n_used[0], "repeats": repeats, "seed": seed, "headline_pcs": headline_pcs})
     return res
+
+
+def realtime_rng(seed: int, repeat: int) -> np.random.Generator:
+    """The generator of :func:`run_realtime`'s repetition ``repeat`` (what :func:`realtime_draw` draws from)."""
+    return np.random.default_rng([seed, 20_000 + repeat])
+
+
+def realtime_draw(texture: np.ndarray, in_trained: np.ndarray, k: int, train_fraction: float,
+                  rng: np.random.Generator) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray,
+                                                     np.ndarray]:
+    """One repetition's splits of Fig. 4's tasks (rows of ``texture``, (n,) labels; ``in_trained``, (n,) bool: the
+    trial's profile is a trained one): ``(folds, train, held, untrained)``: the ``k`` stratified folds of the offline
+    task (``rt_offline``), the trained-profile rows drawn for training (``train_fraction`` per texture), the
+    trained-profile rows held out (``rt_trained``'s test) and the untrained-profile rows (``rt_untrained``'s test).
+    :func:`run_realtime` and the exported splits (:func:`rigctl.analysis.splits.paper_splits`) draw with it."""
+    folds = _stratified_folds(texture, k, int(rng.integers(2**31)))
+    train = _stratified_fraction(np.flatnonzero(in_trained), texture, train_fraction, rng)
+    held = np.setdiff1d(np.flatnonzero(in_trained), train)
+    return folds, train, held, np.flatnonzero(~in_trained)
 
 
 def _stratified_fraction(idx, labels, fraction, rng):

@@ -20,7 +20,7 @@ from rigctl.cli.outputs import (
     scheduler_address,
 )
 from rigctl.cli.progress import bars, progress_option, show_bars
-from rigctl.cli.ranges import SEED, WORKERS
+from rigctl.cli.ranges import SEED, WORKERS, comma_floats as _floats
 
 TASKS = ("textures", "groups", "extrapolation", "speed-extrapolation", "realtime", "all", "variance")
 
@@ -47,15 +47,6 @@ def _checked_cv_groups(ctx, param, value):
         except ValueError as exc:
             raise click.BadParameter(str(exc).split(": ", 1)[-1]) from None
     return value
-
-
-def _floats(text):
-    if text is None:
-        return None
-    try:
-        return [float(x) for x in str(text).split(",") if x.strip()]
-    except ValueError:
-        raise click.BadParameter(f"expected comma-separated numbers, got '{text}'") from None
 
 
 def _check_variants(path, variants):

@@ -7,7 +7,7 @@ import click
 from rigctl.cli import SuggestingGroup
 from rigctl.cli.outputs import UsageProblem, check_output
 from rigctl.cli.progress import bars, progress_option, show_bars
-from rigctl.cli.ranges import SEED
+from rigctl.cli.ranges import SEED, comma_floats
 
 
 @click.group("export", cls=SuggestingGroup)
@@ -79,9 +79,12 @@ def nwb(session, encoded, variants, out, overwrite, progress, keep_nonfinite, ex
                f"at {summary.rate_hz:g} Hz" + (f"; {units}" if units else ""))
 
 
-def _splits_writer(encoded: str | None, session: str | None, seed: int):
-    """``{"splits.json": write}``: the paper's splits of the exported trials (rigctl.analysis.splits)."""
-    from rigctl.analysis.splits import paper_splits
+def _splits_writer(encoded: str | None, session: str | None, seed: int, design: dict):
+    """``{"splits.json": write}``: the paper's splits of the exported trials (rigctl.analysis.splits): the
+    extrapolation cells of ``design`` (``train_speeds_mm_s``, ``train_forces_g``; the paper's when None), or Fig.
+    4's tasks for a velocity-profile session (``train_profiles``)."""
+    from rigctl.analysis.params import RealtimeParams
+    from rigctl.analysis.splits import PAPER_TRAIN_FORCES_G, PAPER_TRAIN_SPEEDS_MM_S, paper_splits
     from rigctl.storage.spike_export import SPLITS_NAME, write_splits
 
     if encoded is not None:
@@ -90,6 +93,7 @@ def _splits_writer(encoded: str | None, session: str | None, seed: int):
         with open_encoded(encoded) as enc:
             t = enc.trials
             cols: tuple = (t["texture"], t["speed_mm_s"], t["force_g"], t["trial_id"])
+            profile: list[str] = [str(p) for p in t["profile"]]
         source = encoded
     else:
         from rigctl.storage.session import open_session
@@ -101,12 +105,27 @@ def _splits_writer(encoded: str | None, session: str | None, seed: int):
             plan = {int(r["trial_id"]): r for r in s.plan}
             cols = ([plan[i]["texture"] for i in ids], [plan[i]["speed_mm_s"] for i in ids],
                     [plan[i]["force_g"] for i in ids], ids)
+            profile = [str(plan[i]["profile"]) for i in ids]
         source = session
-    splits = paper_splits(*cols, seed=seed)
+    realtime = RealtimeParams(train_profiles=tuple(design["train_profiles"])) if design["train_profiles"] else None
+    splits = paper_splits(*cols, seed=seed, profile=profile, realtime=realtime,
+                          train_speeds_mm_s=design["train_speeds_mm_s"] or PAPER_TRAIN_SPEEDS_MM_S,
+                          train_forces_g=design["train_forces_g"] or PAPER_TRAIN_FORCES_G)
     notes = splits["notes"]
     for note in notes if isinstance(notes, list) else []:
         click.echo(f"note: splits: {note}", err=True)
     return {SPLITS_NAME: lambda path: write_splits(path, splits, source=str(source))}
+
+
+def _split_design(train_speeds: str | None, train_forces: str | None, train_profiles: str | None) -> dict:
+    """The splits' trained cells from the options (None: the paper's)."""
+    speeds, forces = comma_floats(train_speeds), comma_floats(train_forces)
+    if train_speeds is not None and not speeds:
+        raise UsageProblem("--train-speeds: name at least one speed (e.g. 40,60,80)")
+    if train_forces is not None and not forces:
+        raise UsageProblem("--train-forces: name at least one force (e.g. 250,500)")
+    profiles = [p.strip() for p in train_profiles.split(",") if p.strip()] if train_profiles is not None else None
+    return {"train_speeds_mm_s": speeds, "train_forces_g": forces, "train_profiles": profiles}
 
 
 _splits_options = [
@@ -115,6 +134,13 @@ _splits_options = [
                       "both) as trial ids, drawn as rigctl analyze draws them."),
     click.option("--seed", type=SEED, default=0, show_default=True,
                  help="Seed of the splits' draws (rigctl analyze --seed: its first repetition's split)."),
+    click.option("--train-speeds", default=None,
+                 help="The splits' trained speeds, mm/s (rigctl analyze --train-speeds; default the paper's 40,60,80)."),
+    click.option("--train-forces", default=None,
+                 help="The splits' trained forces, g (rigctl analyze --train-forces; default the paper's 250,500)."),
+    click.option("--train-profiles", default=None,
+                 help="A velocity-profile session's trained profiles (rigctl analyze --train-profiles; default "
+                      "slow,medium): the splits are then Fig. 4's tasks."),
 ]
 
 
@@ -157,14 +183,15 @@ def _folder_export(out: str, kind: str, overwrite: bool, progress, write, *, val
 @click.option("--overwrite", is_flag=True, help="Replace an existing events export folder.")
 @_with_splits
 @progress_option
-def events(encoded, out, variant, overwrite, splits, seed, progress):
+def events(encoded, out, variant, overwrite, splits, seed, train_speeds, train_forces, train_profiles, progress):
     """Every trial's SA/RA spike trains of ENCODED as events in Tonic's layout: one trial_<id>.npz per trial (a
     structured array x, y, t (us), p (SA 0, RA 1), sensor_size, the labels), with splits.json (docs/guides/spiking-networks.md)."""
     from rigctl.storage.spike_export import EVENTS_KIND, export_events
 
+    design = _split_design(train_speeds, train_forces, train_profiles)
     summary = _folder_export(out, EVENTS_KIND, overwrite, progress, lambda on_event: export_events(
         encoded, out, variant=variant, overwrite=overwrite,
-        extra_files=_splits_writer(encoded, None, seed) if splits else None, progress=on_event))
+        extra_files=_splits_writer(encoded, None, seed, design) if splits else None, progress=on_event))
     click.echo(f"wrote {out}: {summary.n_trials} trials of {summary.variant}, {summary.n_spikes} events"
                + (", splits.json" if splits else ""))
 
@@ -182,9 +209,11 @@ def events(encoded, out, variant, overwrite, splits, seed, progress):
 @click.option("--overwrite", is_flag=True, help="Replace an existing per-trial export folder.")
 @_with_splits
 @progress_option
-def trials(session, encoded, layouts, variant, out, overwrite, splits, seed, progress):
-    """A peer lab's per-trial layout: Data[Texture(NNN)][Speed(S)][Force(F)][Trial(k)].csv per trial (and
-    SpikeTrains[...].npz), with rigctl_import.toml to import the CSVs back and splits.json (docs/guides/spiking-networks.md)."""
+def trials(session, encoded, layouts, variant, out, overwrite, splits, seed, train_speeds, train_forces,
+           train_profiles, progress):
+    """A peer lab's per-trial layout: Data[Texture(NNN)][Speed(S)][Force(F)][Trial(k)].csv per trial (a
+    velocity-profile session's names add [Profile(name)] before [Trial(k)]; and SpikeTrains[...].npz), with
+    rigctl_import.toml to import the CSVs back and splits.json (docs/guides/spiking-networks.md)."""
     from rigctl.storage.spike_export import TRIALS_KIND, export_trials
 
     if "per-trial-csv" in layouts and session is None:
@@ -193,9 +222,10 @@ def trials(session, encoded, layouts, variant, out, overwrite, splits, seed, pro
         raise UsageProblem("--layout per-trial-npz writes spike trains: give --encoded ENC.h5")
     if variant is not None and encoded is None:
         raise UsageProblem("--variant chooses among the spike trains of --encoded FILE: give the encoded file too")
+    design = _split_design(train_speeds, train_forces, train_profiles)
     summary = _folder_export(out, TRIALS_KIND, overwrite, progress, lambda on_event: export_trials(
         out, layouts=layouts, session_path=session, encoded_path=encoded, variant=variant, overwrite=overwrite,
-        extra_files=_splits_writer(encoded, session, seed) if splits else None, progress=on_event), value_errors=True)
+        extra_files=_splits_writer(encoded, session, seed, design) if splits else None, progress=on_event), value_errors=True)
     click.echo(f"wrote {out}: {summary.n_trials} trials, {summary.n_files} files"
                + (", splits.json" if splits else ""))
 

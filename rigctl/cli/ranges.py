@@ -50,3 +50,14 @@ WORKERS_OR_0 = click.IntRange(0, MAX_WORKERS)
 RATE_HZ = floats(0, MAX_RATE_HZ, min_open=True)
 #: ``--lsl-wait SECONDS``: how long a run waits for a recorder on its marker stream (0: not at all; at most an hour)
 LSL_WAIT_S = floats(0, 3600)
+
+
+def comma_floats(text: str | None) -> list[float] | None:
+    """``"40,60,80"`` -> ``[40.0, 60.0, 80.0]`` (None stays None): the lists of speeds and forces that ``analyze`` and
+    the exports' splits take (``--train-speeds``, ``--train-forces``). Raises click.BadParameter (exit 2)."""
+    if text is None:
+        return None
+    try:
+        return [float(x) for x in str(text).split(",") if x.strip()]
+    except ValueError:
+        raise click.BadParameter(f"expected comma-separated numbers, got '{text}'") from None

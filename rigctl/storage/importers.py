@@ -387,13 +387,14 @@ def write_imported_session(out: str | os.PathLike[str], trials: Sequence[Importe
     for i, t in enumerate(trials):
         lab = t.labels
         speed, force = float(lab.get("speed_mm_s", math.nan)), float(lab.get("force_g", math.nan))
-        key = (lab["texture"], speed, force)
+        profile = str(lab.get("profile", "") or "constant")  # a label pattern's {profile} (a profile export's names)
+        key = (lab["texture"], speed, force, profile)
         rep = lab.get("repeat")
         if rep is None:
             rep = counters.get(key, 0)
             counters[key] = rep + 1
         plan.append({"trial_id": i, "texture": str(lab["texture"]), "speed_mm_s": speed, "force_g": force,
-                     "duration_s": t.counts.shape[0] / layout.sample_rate_hz, "profile": "constant",
+                     "duration_s": t.counts.shape[0] / layout.sample_rate_hz, "profile": profile,
                      "repeat": int(rep)})
     if textures is None:
         textures = texture_set_from_labels(p["texture"] for p in plan)
@@ -523,14 +524,15 @@ class ImportOptions:
 
 
 def _file_labels(path: Path, opts: ImportOptions, rx: re.Pattern[str] | None) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The labels step for one file: plan labels (texture, speed_mm_s, force_g, repeat) from the defaults, the
+    """The labels step for one file: plan labels (texture, speed_mm_s, force_g, repeat, profile) from the defaults, the
     pattern and the mapping's ``[files."NAME"]`` table, and the pattern's other fields."""
-    labels = {k: v for k, v in opts.defaults.items() if _FIELD_ALIASES.get(k, k) in ("texture", *_NUMERIC)}
+    plan_fields = ("texture", "profile", *_NUMERIC)  # profile: a profile export's names (rigctl export trials)
+    labels = {k: v for k, v in opts.defaults.items() if _FIELD_ALIASES.get(k, k) in plan_fields}
     extra: dict[str, Any] = {}
     if rx is not None:
         got = labels_from_name(path.name, rx)
-        labels.update({k: v for k, v in got.items() if k in ("texture", *_NUMERIC)})
-        extra.update({k: v for k, v in got.items() if k not in ("texture", *_NUMERIC)})
+        labels.update({k: v for k, v in got.items() if k in plan_fields})
+        extra.update({k: v for k, v in got.items() if k not in plan_fields})
     for key in (path.name, path.stem, str(path)):
         if key in opts.per_file:
             for k, v in opts.per_file[key].items():

@@ -11,23 +11,29 @@ and ``.csv`` any of them reads.
   in microseconds; tonic.readthedocs.io, "Events"), one event per spike of the trial:
     - ``t``: the spike's time from the trial's first sample, microseconds (the encoded file's time in s x 1e6,
       rounded to the nearest microsecond: the encoder's step is 1 ms, so the rounding is < 0.1 % of a step; the
-      largest rounding of the file is in the manifest as ``t_rounding_max_us``);
+      largest rounding of the file is in the manifest as ``t_rounding_max_us``), in the variant's time base
+      (``time_base``: ``real time``, or ``speed-scaled`` for a speed-scaled variant, eq. 2: real time x the trial's
+      speed / the reference speed, so a 40 mm/s trial of 1 s ends at 0.333 s);
     - ``x``: the taxel within its layer (row-major: ``row * cols + col``, :meth:`SensorLayout.channel_position`);
     - ``y``: the layer (0 = top, the paper's type I; 1 = bottom, type II);
     - ``p``: the neuron type, SA = 0, RA = 1 (eqs. 3-5);
 - ``sensor_size``: int64 ``(taxels per layer (the largest layer), layers, 2)``: Tonic's ``(W, H, P)``;
 - the labels: ``texture`` (str), ``texture_code`` (its position in the texture set), ``speed_mm_s``, ``force_g``
   (float64; NaN when unknown), ``repeat`` (0-based, the trial's rank among the trials of its texture, speed and force
-  in trial-id order), ``session`` (the session file's name), ``trial_id``, ``variant`` and ``duration_s``.
+  in trial-id order), ``session`` (the session file's name), ``trial_id``, ``variant``, ``profile`` (the velocity
+  profile's name, e.g. ``slow-to-fast``; ``constant`` for a trial at one speed), ``time_base`` and ``duration_s``
+  (the trial's duration in that time base; ``duration_real_s`` in real time).
 
 **Per-trial layout** (``export_trials``): the peer lab's naming, one trial a file:
 ``Data[Texture(NNN)][Speed(S)][Force(F)][Trial(k)].csv`` (taxel readings: a header of the channel labels, one row a
 sample, ADC counts) and/or ``SpikeTrains[...].npz`` (``spikes``: uint8 ``(T, C)`` spike counts per model step (1 ms;
 the count, not a 0/1 flag, so a speed-scaled variant's denser steps lose nothing), ``C`` = the trains: SA of taxels
 0..n-1 then RA; ``trains``: their names), ``NNN`` the texture's code (3 digits), ``S`` / ``F`` as ``%g``, ``k`` the
-repeat. ``rigctl_import.toml`` beside the CSVs imports them back (``rigctl import DIR/*.csv --mapping
-DIR/rigctl_import.toml``: rate, sensor, texture set, and the label pattern that reads speed, force and repeat from
-the names; each file's texture label in its ``[files]`` table).
+repeat; a velocity-profile session's names add ``[Profile(name)]`` before ``[Trial(k)]`` (the repeat then counts
+within texture, speed, force and profile), so that no two trials share a name. ``rigctl_import.toml`` beside the
+CSVs imports them back (``rigctl import DIR/*.csv --mapping DIR/rigctl_import.toml``: rate, sensor, texture set, and
+the label pattern that reads speed, force, profile and repeat from the names; each file's texture label in its
+``[files]`` table).
 
 Each export folder carries its manifest (:mod:`rigctl.storage.export_folder`) and, when the lead command gives it,
 ``splits.json`` (:func:`write_splits`).
@@ -48,7 +54,7 @@ import numpy as np
 from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
-from rigctl.storage.encoded import REALTIME_VARIANTS, EncodedFile, open_encoded
+from rigctl.storage.encoded import REALTIME_VARIANTS, VARIANTS, EncodedFile, open_encoded
 from rigctl.storage.export_folder import FolderOutput, folder_output
 
 __all__ = ["EVENT_DTYPE", "EVENTS_KIND", "TRIALS_KIND", "SPLITS_NAME", "LAYOUTS", "ExportSummary", "TrialLabels",
@@ -67,12 +73,18 @@ LAYOUTS = ("per-trial-csv", "per-trial-npz")
 IMPORT_MAPPING_NAME = "rigctl_import.toml"
 #: the label pattern of the peer lab's names (``rigctl import --label-pattern``); the texture is each file's own
 LABEL_PATTERN = "Data[Texture({texture_code})][Speed({speed_mm_s})][Force({force_g})][Trial({repeat})].csv"
+#: the same with the velocity profile (a profile session's export)
+PROFILE_LABEL_PATTERN = ("Data[Texture({texture_code})][Speed({speed_mm_s})][Force({force_g})][Profile({profile})]"
+                         "[Trial({repeat})].csv")
+#: the events' time bases (``time_base``): a speed-scaled variant's spike times are eq. 2's scaled times
+REAL_TIME, SPEED_SCALED_TIME = "real time", "speed-scaled"
 
 
 @dataclass(frozen=True)
 class TrialLabels:
     """Per-trial labels of an export, in trial order: ``trial_id`` int64, ``texture`` str, ``texture_code`` int64,
-    ``speed_mm_s`` / ``force_g`` float64 (NaN unknown), ``repeat`` int64, ``duration_s`` float64."""
+    ``speed_mm_s`` / ``force_g`` float64 (NaN unknown), ``repeat`` int64, ``duration_s`` float64 (real time),
+    ``profile`` str (the velocity profile; ``""`` unknown)."""
 
     trial_id: np.ndarray
     texture: np.ndarray
@@ -81,30 +93,38 @@ class TrialLabels:
     force_g: np.ndarray
     repeat: np.ndarray
     duration_s: np.ndarray
+    profile: np.ndarray
+
+    @property
+    def has_profiles(self) -> bool:
+        """A velocity-profile session (any profile but ``constant`` / unknown): names carry the profile."""
+        return bool(np.any(~np.isin(self.profile, ("", "constant"))))
 
     @classmethod
     def of(cls, trial_id: Sequence[int] | np.ndarray, texture: Sequence[str] | np.ndarray,
            labels: Sequence[str], speed_mm_s: Sequence[float] | np.ndarray, force_g: Sequence[float] | np.ndarray,
-           duration_s: Sequence[float] | np.ndarray, repeat: Sequence[int] | np.ndarray | None = None
-           ) -> "TrialLabels":
+           duration_s: Sequence[float] | np.ndarray, repeat: Sequence[int] | np.ndarray | None = None,
+           profile: Sequence[str] | np.ndarray | None = None) -> "TrialLabels":
         """From the columns; ``labels`` is the texture set's order (codes); ``repeat`` None: each trial's rank
-        among its (texture, speed, force) cell in trial-id order."""
+        among its (texture, speed, force, profile) cell in trial-id order; ``profile`` None: unknown (``""``)."""
         ids = np.asarray(trial_id, np.int64)
         tex = np.asarray(texture).astype(str)
         spd = np.asarray(speed_mm_s, np.float64)
         frc = np.asarray(force_g, np.float64)
+        prof = np.full(ids.shape, "", dtype=object) if profile is None else np.asarray(profile)
+        prof = np.asarray([str(p) for p in prof.ravel()], dtype=str) if prof.size else np.zeros(0, str)
         code_of = {lab: i for i, lab in enumerate(labels)}
         codes = np.asarray([code_of[t] for t in tex], np.int64)
         if repeat is None:
-            seen: dict[tuple[str, str, str], int] = {}
+            seen: dict[tuple[str, str, str, str], int] = {}
             rep = np.zeros(ids.size, np.int64)
             for i in np.argsort(ids, kind="stable"):
-                key = (tex[i], repr(float(spd[i])), repr(float(frc[i])))
+                key = (tex[i], repr(float(spd[i])), repr(float(frc[i])), str(prof[i]))
                 rep[i] = seen.get(key, 0)
                 seen[key] = int(rep[i]) + 1
         else:
             rep = np.asarray(repeat, np.int64)
-        return cls(ids, tex, codes, spd, frc, rep, np.asarray(duration_s, np.float64))
+        return cls(ids, tex, codes, spd, frc, rep, np.asarray(duration_s, np.float64), prof)
 
 
 @dataclass
@@ -124,10 +144,13 @@ def _num(x: float) -> str:
     return "nan" if math.isnan(x) else f"{x:g}"
 
 
-def trial_file_name(prefix: str, code: int, speed_mm_s: float, force_g: float, repeat: int, suffix: str) -> str:
-    """The peer lab's per-trial name: ``Data[Texture(003)][Speed(80)][Force(500)][Trial(2)].csv``."""
+def trial_file_name(prefix: str, code: int, speed_mm_s: float, force_g: float, repeat: int, suffix: str,
+                    profile: str = "") -> str:
+    """The peer lab's per-trial name: ``Data[Texture(003)][Speed(80)][Force(500)][Trial(2)].csv``; with a
+    ``profile``, ``...[Force(500)][Profile(slow-to-fast)][Trial(2)].csv``."""
+    named = f"[Profile({profile})]" if profile else ""
     return (f"{prefix}[Texture({int(code):03d})][Speed({_num(float(speed_mm_s))})][Force({_num(float(force_g))})]"
-            f"[Trial({int(repeat)})]{suffix}")
+            f"{named}[Trial({int(repeat)})]{suffix}")
 
 
 def default_variant(enc: EncodedFile) -> str:
@@ -154,7 +177,7 @@ def encoded_labels(enc: EncodedFile) -> TrialLabels:
     """The labels of an encoded file's trials (:class:`TrialLabels`)."""
     t = enc.trials
     return TrialLabels.of(t["trial_id"], t["texture"], enc.textures.labels, t["speed_mm_s"], t["force_g"],
-                          t["duration_s"])
+                          t["duration_s"], profile=t["profile"])
 
 
 def _session_name(enc: EncodedFile) -> str:
@@ -187,13 +210,21 @@ def export_events(encoded_path: str | os.PathLike[str], out_dir: str | os.PathLi
         labels = encoded_labels(enc)
         session = _session_name(enc)
         summary = ExportSummary(Path(out_dir), variant=variant)
+        scaled = bool(VARIANTS[variant].speed_scaled) if variant in VARIANTS else False
+        time_base = SPEED_SCALED_TIME if scaled else REAL_TIME
+        reference = float(enc.parameters.get("reference_speed_mm_s", 120.0))
+        # the trial's duration in the time base: eq. 2 contracts a trial by speed / reference speed
+        duration = labels.duration_s * (labels.speed_mm_s / reference if scaled else 1.0)
         worst = 0.0
         n = enc.n_trials
         bar = Stage(progress, "writing events", n, unit="trial")
         manifest = {"variant": variant, "source_encoded": str(enc.path), "session": session,
                     "sensor_size": sensor_size.tolist(), "event_dtype": [list(f) for f in EVENT_DTYPE.descr],
                     "fields": {"x": "taxel within its layer (row-major)", "y": "layer (0 top, type I; 1 bottom, "
-                               "type II)", "t": "spike time from the trial's first sample, us", "p": "SA 0, RA 1"},
+                               "type II)", "t": ("spike time from the trial's first sample, us, in speed-scaled "
+                                                 "time (eq. 2: real time x speed / reference_speed_mm_s)") if scaled
+                               else "spike time from the trial's first sample, us (real time)", "p": "SA 0, RA 1"},
+                    "time_base": time_base, "reference_speed_mm_s": reference if scaled else None,
                     "layout": layout.to_dict(), "textures": list(enc.textures.labels)}
         with folder_output(out_dir, kind=EVENTS_KIND, overwrite=overwrite, manifest=manifest) as fo:
             for i in range(n):
@@ -215,7 +246,8 @@ def export_events(encoded_path: str | os.PathLike[str], out_dir: str | os.PathLi
                          texture=np.str_(labels.texture[i]), texture_code=labels.texture_code[i],
                          speed_mm_s=labels.speed_mm_s[i], force_g=labels.force_g[i], repeat=labels.repeat[i],
                          session=np.str_(session), trial_id=np.int64(tid), variant=np.str_(variant),
-                         duration_s=labels.duration_s[i])
+                         profile=np.str_(labels.profile[i] or "constant"), time_base=np.str_(time_base),
+                         duration_s=np.float64(duration[i]), duration_real_s=labels.duration_s[i])
                 summary.n_spikes += int(ev.size)
                 bar.advance(1)
             manifest["t_rounding_max_us"] = round(worst, 6)
@@ -284,12 +316,13 @@ def _texture_set_toml(textures: TextureSet) -> list[str]:
     return lines
 
 
-def _import_mapping(layout: SensorLayout, textures: TextureSet, files: Mapping[str, str]) -> str:
+def _import_mapping(layout: SensorLayout, textures: TextureSet, files: Mapping[str, str],
+                    label_pattern: str = LABEL_PATTERN) -> str:
     """The TOML mapping that imports a per-trial CSV export back (``rigctl import --mapping``)."""
     lines = [f"# rigctl import DIR/*.csv --mapping DIR/{IMPORT_MAPPING_NAME} --out SESSION.h5",
              f"rate_hz = {float(layout.sample_rate_hz)!r}",
              f"adc_bits = {int(layout.adc_bits)}",
-             f"label_pattern = {_toml_str(LABEL_PATTERN)}",
+             f"label_pattern = {_toml_str(label_pattern)}",
              "[sensor]", *(f"{k} = {json.dumps(v)}" for k, v in layout.to_dict().items() if k not in ("layers", "n_channels")
                            and v is not None)]
     for la in layout.to_dict()["layers"]:
@@ -335,23 +368,28 @@ def export_trials(out_dir: str | os.PathLike[str], *, layouts: Sequence[str], se
             plan = {int(r["trial_id"]): r for r in ses.plan}
             rows = [plan[t] for t in ids]
             texture_labels = ses.textures.labels
+            profiles = [str(r["profile"]) for r in rows]
             labels = TrialLabels.of(ids, [r["texture"] for r in rows], texture_labels,
                                     [r["speed_mm_s"] for r in rows], [r["force_g"] for r in rows],
-                                    [r["duration_s"] for r in rows], [r["repeat"] for r in rows])
+                                    [r["duration_s"] for r in rows],
+                                    None if any(p not in ("", "constant") for p in profiles) else
+                                    [r["repeat"] for r in rows], profile=profiles)
         unlabelled = np.flatnonzero(~(np.isfinite(labels.speed_mm_s) & np.isfinite(labels.force_g)))
         if unlabelled.size:
             raise ValueError(f"trial {int(labels.trial_id[unlabelled[0]])} has no speed or force label: the per-trial "
                              "layout names every trial by its speed and force (export events instead)")
-        names = [trial_file_name("", c, s, f, r, "") for c, s, f, r in
-                 zip(labels.texture_code, labels.speed_mm_s, labels.force_g, labels.repeat)]
+        named = labels.has_profiles
+        names = [trial_file_name("", c, s, f, r, "", str(p) if named else "") for c, s, f, r, p in
+                 zip(labels.texture_code, labels.speed_mm_s, labels.force_g, labels.repeat, labels.profile)]
         if len(set(names)) != len(names):
             dup = next(n for n in names if names.count(n) > 1)
-            raise ValueError(f"two trials would share the name {dup}: their texture, speed, force and repeat are "
-                             "equal (export them in two folders, one session each)")
+            raise ValueError(f"two trials would share the name {dup}: their texture, speed, force, profile and "
+                             "repeat are equal (the session's repeats are not unique: check its plan)")
         summary = ExportSummary(Path(out_dir), n_trials=len(names), variant=variant if enc else None)
         manifest = {"layouts": list(layouts), "source_session": str(session_path or ""),
                     "source_encoded": str(encoded_path or ""), "variant": summary.variant,
-                    "textures": list(texture_labels), "name_pattern": LABEL_PATTERN}
+                    "textures": list(texture_labels),
+                    "name_pattern": PROFILE_LABEL_PATTERN if named else LABEL_PATTERN}
         bar = Stage(progress, "writing trials", len(names), unit="trial")
         with folder_output(out_dir, kind=TRIALS_KIND, overwrite=overwrite, manifest=manifest) as fo:
             csv_files: dict[str, str] = {}
@@ -378,13 +416,15 @@ def export_trials(out_dir: str | os.PathLike[str], *, layouts: Sequence[str], se
                              trains=np.asarray([f"SA {c}" for c in range(n_ch)] + [f"RA {c}" for c in range(n_ch)]),
                              tick_s=np.float64(tick_s), texture=np.str_(labels.texture[i]),
                              speed_mm_s=labels.speed_mm_s[i], force_g=labels.force_g[i], repeat=labels.repeat[i],
-                             trial_id=np.int64(tid), variant=np.str_(variant))
+                             trial_id=np.int64(tid), variant=np.str_(variant),
+                             profile=np.str_(labels.profile[i] or "constant"))
                     summary.n_spikes += int(spikes.sum())
                 bar.advance(1)
             if csv_files:
                 assert ses is not None
-                fo.file(IMPORT_MAPPING_NAME).write_text(_import_mapping(ses.layout, ses.textures, csv_files),
-                                                        encoding="utf-8")
+                fo.file(IMPORT_MAPPING_NAME).write_text(
+                    _import_mapping(ses.layout, ses.textures, csv_files,
+                                    PROFILE_LABEL_PATTERN if named else LABEL_PATTERN), encoding="utf-8")
             _write_extra(fo, extra_files)
             summary.n_files = len(fo.files)
     finally:

@@ -212,3 +212,136 @@ def test_usage_errors_are_one_line(dataset, tmp_path):
     r = _run("export", "trials", ses_path, "--layout", "per-trial-npz", "--out", tmp_path / "y")
     assert r.exit_code == 2 and "--encoded" in r.output
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+PROFILE_PROTOCOL = """
+name = "profiles_test"
+textures = ["A", "D", "L"]
+forces_g = [500]
+trials_per_condition = 4
+travel_mm = 60
+order = "blocked"
+
+[[profiles]]
+name = "slow"
+kind = "constant"
+speed_mm_s = 40
+
+[[profiles]]
+name = "medium"
+kind = "constant"
+speed_mm_s = 80
+
+[[profiles]]
+name = "fast"
+kind = "constant"
+speed_mm_s = 120
+
+[[profiles]]
+name = "slow-to-fast"
+kind = "ramp"
+start_mm_s = 40
+end_mm_s = 120
+"""
+
+
+@pytest.fixture(scope="module")
+def profile_dataset(tmp_path_factory):
+    """A velocity-profile session (Fig. 4's kind: the ramp's speed label, 80, is the medium profile's too)."""
+    from rigctl.acquisition.protocol import parse_protocol
+    from rigctl.simulation.dataset import generate_dataset
+
+    d = tmp_path_factory.mktemp("profiles_ds")
+    generate_dataset(parse_protocol(PROFILE_PROTOCOL), d / "p.h5", seed=3, workers=0, progress=False)
+    encode_session(d / "p.h5", d / "p.enc.h5", progress=False)
+    return d / "p.h5", d / "p.enc.h5"
+
+
+def test_a_profile_sessions_events_carry_the_profile_and_fig4s_splits(profile_dataset, tmp_path):
+    """Issue 79 item 2: each event file names its profile, and splits.json holds Fig. 4C's profile hold-out as
+    ``analyze --task realtime`` draws it, not speed cells that mix the ramps into the trained ones."""
+    from rigctl.analysis.tasks import realtime_draw, realtime_rng
+
+    _, enc_path = profile_dataset
+    out = tmp_path / "ev"
+    r = _run("export", "events", enc_path, "--out", out, "--seed", 4)
+    assert r.exit_code == 0, r.output
+    with open_encoded(enc_path) as enc:
+        t = enc.trials
+        ids, profile, texture = np.asarray(t["trial_id"]), np.asarray(t["profile"]).astype(str), np.asarray(t["texture"])
+    for tid, prof in zip(ids, profile):
+        _, meta = read_events(out / f"trial_{int(tid):06d}.npz")
+        assert meta["profile"] == prof
+    assert set(profile) == {"slow", "medium", "fast", "slow-to-fast"}
+    splits = json.loads((out / "splits.json").read_text())
+    tasks = splits["tasks"]
+    assert {"rt_offline", "rt_trained", "rt_untrained"} <= set(tasks) and "untrained_speed" not in tasks
+    trained = set(ids[np.isin(profile, ["slow", "medium"])].tolist())
+    (untr,) = tasks["rt_untrained"]["folds"]
+    (held,) = tasks["rt_trained"]["folds"]
+    assert set(untr["test"]) == set(ids.tolist()) - trained  # fast and the ramp: the untrained profiles
+    assert set(held["train"]) | set(held["test"]) == trained and not set(held["train"]) & set(held["test"])
+    # the draw is the analysis' own (its repetition 0 at the same seed)
+    folds, train, held_rows, _ = realtime_draw(texture, np.isin(profile, ["slow", "medium"]), 4, 0.75,
+                                               realtime_rng(4, 0))
+    assert held["train"] == sorted(ids[train].tolist()) and held["test"] == sorted(ids[held_rows].tolist())
+    assert [f["test"] for f in tasks["rt_offline"]["folds"]] == [sorted(ids[te].tolist()) for _, te in folds]
+
+
+def test_a_profile_session_exports_per_trial_and_imports_back(profile_dataset, tmp_path):
+    """``export trials`` of a profile session: every trial named with its profile (it was refused: two trials
+    shared a name), and the import mapping reads the profile back."""
+    from rigctl.storage.session import open_session
+
+    session, _ = profile_dataset
+    out = tmp_path / "peer"
+    r = _run("export", "trials", session, "--layout", "per-trial-csv", "--out", out)
+    assert r.exit_code == 0, r.output
+    names = sorted(p.name for p in out.glob("Data*.csv"))
+    assert len(names) == 48 and all("[Profile(" in n for n in names)
+    r = _run("import", *sorted(str(p) for p in out.glob("Data*.csv")), "--mapping", out / "rigctl_import.toml",
+             "--out", tmp_path / "back.h5")
+    assert r.exit_code == 0, r.output
+    with open_session(session) as a, open_session(tmp_path / "back.h5") as b:
+        want = sorted((str(x["texture"]), str(x["profile"])) for x in a.plan)
+        got = sorted((str(x["texture"]), str(x["profile"])) for x in b.plan)
+    assert got == want
+
+
+def test_speed_scaled_events_name_their_time_base(dataset, tmp_path):
+    """Issue 79 item 3: a speed-scaled variant's events say ``time_base = speed-scaled`` and give the trial's
+    duration in that base (a 40 mm/s trial of 0.5 s lasts 0.167 s there), its spikes inside it; real-time ones say
+    so."""
+    _, enc_path = dataset
+    for variant, base in (("speed_scaled", "speed-scaled"), ("original", "real time")):
+        out = tmp_path / variant
+        assert _run("export", "events", enc_path, "--out", out, "--variant", variant, "--no-splits").exit_code == 0
+        manifest = json.loads((out / "rigctl_export.json").read_text())
+        assert manifest["time_base"] == base
+        for f in sorted(out.glob("trial_*.npz")):
+            ev, meta = read_events(f)
+            assert meta["time_base"] == base
+            factor = meta["speed_mm_s"] / 120.0 if variant == "speed_scaled" else 1.0
+            assert meta["duration_s"] == pytest.approx(meta["duration_real_s"] * factor, rel=1e-6)
+            assert ev.size == 0 or ev["t"].max() <= meta["duration_s"] * 1e6 + 1000  # within the trial (1 ms step)
+
+
+def test_the_splits_take_the_trained_cells_of_any_session(dataset, tmp_path):
+    """Issue 79 item 5: ``--train-speeds/--train-forces`` give an off-grid session its extrapolation splits (this
+    one has no 80 mm/s, the paper's grid is not its own)."""
+    _, enc_path = dataset
+    out = tmp_path / "ev"
+    r = _run("export", "events", enc_path, "--out", out, "--train-speeds", "40,60", "--train-forces", "500")
+    assert r.exit_code == 0, r.output
+    tasks = json.loads((out / "splits.json").read_text())["tasks"]
+    with open_encoded(enc_path) as enc:
+        t = enc.trials
+        speed_of = dict(zip(np.asarray(t["trial_id"]).tolist(), np.asarray(t["speed_mm_s"]).tolist()))
+        force_of = dict(zip(np.asarray(t["trial_id"]).tolist(), np.asarray(t["force_g"]).tolist()))
+    (fold,) = tasks["untrained_speed"]["folds"]
+    assert {speed_of[i] for i in fold["test"]} == {120.0} and {force_of[i] for i in fold["test"]} == {500.0}
+    assert {speed_of[i] for i in fold["train"]} == {40.0, 60.0} and {force_of[i] for i in fold["train"]} == {500.0}
+    (fold,) = tasks["untrained_force"]["folds"]
+    assert {force_of[i] for i in fold["test"]} == {1000.0}
+    bad = _run("export", "events", enc_path, "--out", tmp_path / "x", "--train-speeds", "fast")
+    assert bad.exit_code == 2 and "comma-separated numbers" in bad.output and not (tmp_path / "x").exists()
