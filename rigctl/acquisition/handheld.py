@@ -45,6 +45,7 @@ from rigctl.acquisition.safety import SafetyLatch
 from rigctl.core.clocksync import DeviceClockFit
 from rigctl.core.handheld import (
     PLATE_LENGTH_MM,
+    PLATE_WIDTH_MM,
     SPEED_FLOOR_MM_S,
     USED_END_MM,
     USED_START_MM,
@@ -67,6 +68,13 @@ log = logging.getLogger(__name__)
 VELOCITY_WINDOW_S = 0.1
 #: tracker samples kept before the entry and after the exit, s (the velocity at the trial's edges)
 TRACE_MARGIN_S = 0.2
+#: the longest the tracker may lose the finger within a scan, s: a longer gap leaves the window speeds of the gap
+#: unknown (a 0.5 s occlusion made them up to 14x wrong), so the scan is refused and cued again. The simulated
+#: operator's tracker loses bursts of up to 25 samples at 90 Hz (0.28 s), as a Vive that loses line of sight
+MAX_TRACKER_GAP_S = 0.3
+#: the farthest the tracked point may be from the plate's calibrated axis within a scan, mm: half the plate's width
+#: (a finger slid off the plate's side, or lifted and carried in the air, is farther)
+OFF_PLATE_MM = PLATE_WIDTH_MM / 2.0
 
 
 class NoDrumError(RigError, AttributeError):
@@ -122,6 +130,40 @@ def _crossing(t: np.ndarray, x: np.ndarray, level: float, after: int = 0) -> tup
     return i, float(t0 + (level - x0) / (x1 - x0) * (t1 - t0)) if x1 != x0 else float(t1)
 
 
+def _last_crossing(t: np.ndarray, x: np.ndarray, level: float, before: int) -> tuple[int, float, int] | None:
+    """The last sample index ``i <= before`` where ``x`` rises through ``level`` and its interpolated time, and how
+    many rising crossings came before it (passes begun and abandoned), or None."""
+    above = x[: before + 1] >= level
+    rising = np.flatnonzero(above[1:] & ~above[:-1])
+    if not rising.size:
+        return None
+    i = int(rising[-1]) + 1
+    x0, x1, t0, t1 = x[i - 1], x[i], t[i - 1], t[i]
+    return i, float(t0 + (level - x0) / (x1 - x0) * (t1 - t0)) if x1 != x0 else float(t1), int(rising.size - 1)
+
+
+def _check_one_pass(t: np.ndarray, xyz: np.ndarray | None, axis: PlateAxis | None, i_in: int, i_out: int) -> None:
+    """Refuse (ScanError) a pass in which the tracker lost the finger longer than :data:`MAX_TRACKER_GAP_S` or the
+    tracked point left the plate (:data:`OFF_PLATE_MM` from its calibrated axis: slid off its side or lifted)."""
+    span = t[max(i_in - 1, 0): i_out + 1]
+    gaps = np.diff(span)
+    if gaps.size and float(gaps.max()) > MAX_TRACKER_GAP_S:
+        at = float(span[int(np.argmax(gaps))] - t[i_in])
+        raise ScanError(f"the tracker lost the finger for {float(gaps.max()):.2f} s during the pass ({at:+.2f} s from "
+                        f"its entry; more than {MAX_TRACKER_GAP_S:g} s): the window speeds there are unknown, the scan "
+                        "is refused; scan again")
+    if xyz is None or axis is None:
+        return
+    p = np.asarray(xyz[i_in: i_out + 1], np.float64) - np.asarray(axis.start_xyz, np.float64)
+    off = np.linalg.norm(p - np.outer(p @ axis.unit, axis.unit), axis=1)
+    if off.size and float(off.max()) > OFF_PLATE_MM:
+        k = int(np.argmax(off))
+        raise ScanError(f"the finger left the plate during the pass: {float(off[k]):.0f} mm from its axis "
+                        f"{float(t[i_in + k] - t[i_in]):.2f} s after its entry (more than {OFF_PLATE_MM:g} mm: slid off "
+                        "its side or lifted): the scan is refused, not recorded; scan again with the finger on the "
+                        "plate")
+
+
 def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, *,
              used_mm: tuple[float, float] = (USED_START_MM, USED_END_MM),
              velocity_window_s: float = VELOCITY_WINDOW_S) -> TrialData:
@@ -143,7 +185,13 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
 
     Raises
     ------
-    ScanError: no tracker position, the finger never entered or never left the used part, or no frame inside.
+    ScanError: no tracker position, the finger never entered or never left the used part, no frame inside; or the
+    pass was not one continuous pass on the plate: the tracker lost it longer than :data:`MAX_TRACKER_GAP_S`, or it
+    left the plate (:data:`OFF_PLATE_MM`; with tracker-frame points and the plate's axis).
+
+    One scan is one continuous pass: the exit is the first time the finger reaches the used part's end, the entry the
+    last time it came into the used part before that (so a pass begun, abandoned and brought back in the air is not
+    merged with the next one: ``abandoned_passes`` counts them in the trial's attributes).
     """
     t = np.asarray(raw.tracker_time_s, np.float64)
     if raw.along_mm is not None:
@@ -154,17 +202,22 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
         raise ScanError("the scan has no position along the plate (give the tracker's position and calibrate the "
                         "plate's axis)")
     ok = np.isfinite(t) & np.isfinite(along)
+    xyz = None if raw.tracker_xyz is None or raw.along_mm is not None else np.asarray(raw.tracker_xyz)[ok]
     t, along = t[ok], along[ok]
     order = np.argsort(t, kind="stable")
     t, along = t[order], along[order]
-    enter = _crossing(t, along, used_mm[0]) if t.size >= 2 else None
-    if enter is None:
+    xyz = None if xyz is None else xyz[order]
+    first = _crossing(t, along, used_mm[0]) if t.size >= 2 else None
+    if first is None:
         raise ScanError(f"the finger never entered the used part of the plate (from {used_mm[0]:g} mm; the tracker "
                         f"saw {np.nanmin(along) if along.size else math.nan:.0f}-"
                         f"{np.nanmax(along) if along.size else math.nan:.0f} mm)")
-    leave = _crossing(t, along, used_mm[1], after=enter[0] - 1)
+    leave = _crossing(t, along, used_mm[1], after=first[0] - 1)
     if leave is None:
         raise ScanError(f"the finger never left the used part of the plate (past {used_mm[1]:g} mm)")
+    enter = _last_crossing(t, along, used_mm[0], before=leave[0])
+    assert enter is not None  # the first entry is one
+    _check_one_pass(t, xyz, axis, enter[0], leave[0])
     t_in, t_out = enter[1], leave[1]
     near = (t >= t_in - TRACE_MARGIN_S) & (t <= t_out + TRACE_MARGIN_S)
     if raw.onboard is not None:  # encoded on the board: its record, no taxel frames; times from its first sample
@@ -173,7 +226,7 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
                                              if raw.onboard.samples else t_out - origin)
         return TrialData(taxels=np.zeros((0, layout.n_channels), np.uint16), speed_mm_s=sv,
                          speed_time_s=st, position_mm=along[near], position_time_s=t[near] - origin,
-                         attrs={**_tracker_attrs(raw, t, t_in, t_out, near, used_mm), "floored_windows": floored,
+                         attrs={**_tracker_attrs(raw, t, t_in, t_out, near, used_mm, enter[2]), "floored_windows": floored,
                                 "trial_time_origin_s": raw.time_origin_s + origin, **dict(raw.attrs)},
                          layout=layout, onboard=raw.onboard)
     fit = raw.clock_fit or DeviceClockFit(layout.sample_rate_hz)
@@ -192,7 +245,7 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
     seq = np.asarray(raw.seq, np.uint16)[keep]
     steps = np.bitwise_and(np.diff(seq.astype(np.int64)), 0xFFFF)
     st, sv, floored = window_speed_trace(t, along, origin, keep.size / layout.sample_rate_hz)
-    attrs: dict[str, Any] = {**_tracker_attrs(raw, t, t_in, t_out, near, used_mm), "floored_windows": floored,
+    attrs: dict[str, Any] = {**_tracker_attrs(raw, t, t_in, t_out, near, used_mm, enter[2]), "floored_windows": floored,
                              **trial_clock_attrs(fit, counts[keep], host),
                              "trial_time_origin_s": raw.time_origin_s + origin,  # the host-clock time of time 0
                              **dict(raw.attrs)}
@@ -203,7 +256,7 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
 
 
 def _tracker_attrs(raw: RawScan, t: np.ndarray, t_in: float, t_out: float, near: np.ndarray,
-                   used_mm: tuple[float, float]) -> dict[str, Any]:
+                   used_mm: tuple[float, float], abandoned: int = 0) -> dict[str, Any]:
     """The trial's attributes from the tracker: the boundaries, the used part, the scan's duration and mean speed,
     the tracker's samples, rate and dropouts."""
     gaps = np.diff(t)
@@ -212,7 +265,8 @@ def _tracker_attrs(raw: RawScan, t: np.ndarray, t_in: float, t_out: float, near:
             "used_start_mm": float(used_mm[0]), "used_end_mm": float(used_mm[1]),
             "scan_duration_s": t_out - t_in, "scan_mean_speed_mm_s": (used_mm[1] - used_mm[0]) / (t_out - t_in),
             "tracker_samples": int(near.sum()), "tracker_rate_hz": 1.0 / period if period > 0 else math.nan,
-            "tracker_dropouts": int(np.sum(gaps > 1.5 * period)) if gaps.size else 0}
+            "tracker_dropouts": int(np.sum(gaps > 1.5 * period)) if gaps.size else 0,
+            "abandoned_passes": int(abandoned)}
 
 
 def plate_axis_from_config(host_config: dict[str, Any]) -> PlateAxis | None:

@@ -1,0 +1,81 @@
+"""A handheld scan is one continuous pass on the plate (issue 78 items 1-3): a pass begun, abandoned and brought back
+in the air is never merged with the next one; a pass during which the tracker loses the finger longer than
+MAX_TRACKER_GAP_S, or the finger leaves the plate (slid off its side, lifted and carried in the air), is refused
+(ScanError: the run engine cues it again). Judged on synthetic scans whose true path is known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rigctl.acquisition.handheld import MAX_TRACKER_GAP_S, OFF_PLATE_MM, cut_scan
+from rigctl.core.handheld import PlateAxis, RawScan, ScanError
+from rigctl.core.sensor import SensorLayout
+
+LAYOUT = SensorLayout.for_channels(9, sample_rate_hz=1000.0)
+TRACKER_HZ = 100.0
+
+
+def _path(*legs: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Tracker times (s) and positions along the plate (mm) of straight legs (from_mm, to_mm, seconds)."""
+    t, x, t0 = [], [], 0.0
+    for a, b, secs in legs:
+        k = int(round(secs * TRACKER_HZ))
+        t.append(t0 + np.arange(k) / TRACKER_HZ)
+        x.append(np.linspace(a, b, k, endpoint=False))
+        t0 += k / TRACKER_HZ
+    return np.concatenate(t), np.concatenate(x)
+
+
+def _scan(t: np.ndarray, along: np.ndarray, *, xyz: np.ndarray | None = None) -> RawScan:
+    n = int(np.ceil(t[-1] * LAYOUT.sample_rate_hz)) + 1
+    host = np.arange(n) / LAYOUT.sample_rate_hz
+    return RawScan(taxels=np.full((n, LAYOUT.n_channels), 500, np.uint16), seq=(np.arange(n) % 65536).astype(np.uint16),
+                   host_time_s=host, tracker_time_s=t, along_mm=None if xyz is not None else along,
+                   tracker_xyz=xyz, frame_time_s=host)
+
+
+def test_one_pass_is_cut_at_its_entry_and_exit():
+    t, x = _path((15, 15, 0.5), (15, 285, 3.0), (285, 285, 0.5))
+    data = cut_scan(_scan(t, x), LAYOUT)
+    v = 270 / 3.0
+    assert data.attrs["scan_enter_s"] == pytest.approx(0.5 + 35 / v, abs=0.011)
+    assert data.attrs["scan_duration_s"] == pytest.approx(200 / v, abs=0.02)
+    assert data.attrs["abandoned_passes"] == 0
+
+
+def test_an_abandoned_pass_is_not_merged_with_the_next():
+    """The finger lifted at 180 mm, carried back in the air to the start, then a full pass: the trial is the full pass
+    alone (the old cut took the first entry: the aborted pass, the return and the next pass, 3-7 s early)."""
+    t, x = _path((15, 15, 0.3), (15, 180, 2.0), (180, 15, 1.0), (15, 15, 0.5), (15, 285, 3.0), (285, 285, 0.5))
+    data = cut_scan(_scan(t, x), LAYOUT)
+    second = 0.3 + 2.0 + 1.0 + 0.5
+    v = 270 / 3.0
+    assert data.attrs["scan_enter_s"] == pytest.approx(second + 35 / v, abs=0.011)
+    assert data.attrs["scan_duration_s"] == pytest.approx(200 / v, abs=0.02)
+    assert data.n_samples == pytest.approx(200 / v * 1000, abs=15)
+    assert data.attrs["abandoned_passes"] == 1
+
+
+def test_a_tracker_gap_longer_than_the_limit_refuses_the_scan():
+    t, x = _path((15, 15, 0.5), (15, 285, 3.0), (285, 285, 0.5))
+    mid = (t > 2.0) & (t < 2.0 + MAX_TRACKER_GAP_S + 0.2)  # an occlusion of 0.5 s within the used part
+    with pytest.raises(ScanError, match="lost the finger"):
+        cut_scan(_scan(t[~mid], x[~mid]), LAYOUT)
+    short = (t > 2.0) & (t < 2.0 + MAX_TRACKER_GAP_S - 0.1)  # a shorter one is kept
+    assert cut_scan(_scan(t[~short], x[~short]), LAYOUT).n_samples > 0
+
+
+@pytest.mark.parametrize("where", ["lifted", "off the side"])
+def test_a_finger_off_the_plate_refuses_the_scan(where):
+    """With tracker-frame points and the plate's axis: lifted 30 mm and carried in the air over part of the used part,
+    or slid off its side, the pass is refused; the same pass on the plate is cut."""
+    t, x = _path((15, 15, 0.5), (15, 285, 3.0), (285, 285, 0.5))
+    axis = PlateAxis((100.0, 50.0, 20.0), (400.0, 50.0, 20.0))
+    xyz = np.column_stack([100.0 + x, np.full_like(x, 50.0), np.full_like(x, 20.0)])
+    assert cut_scan(_scan(t, x, xyz=xyz), LAYOUT, axis).n_samples > 0
+    off = (x > 120) & (x < 180)
+    moved = xyz.copy()
+    moved[off, 2 if where == "lifted" else 1] += OFF_PLATE_MM + 12
+    with pytest.raises(ScanError, match="left the plate"):
+        cut_scan(_scan(t, x, xyz=moved), LAYOUT, axis)
