@@ -29,7 +29,8 @@ from rigctl.core.trial import PlannedTrial
 __all__ = ["PLATE_LENGTH_MM", "PLATE_WIDTH_MM", "USED_LENGTH_MM", "USED_START_MM", "USED_END_MM",
            "HANDHELD_TEXTURES", "PlateAxis", "RawScan", "ScanSource", "ScanError", "Tracker", "wait_for_pass",
            "refuse_older_than_cue", "checked_since",
-           "PAST_END_MM", "MARGIN_S", "STAMP_AHEAD_S", "SPEED_FLOOR_MM_S", "WINDOW_S", "position_window_speed", "position_window_speeds"]
+           "PAST_END_MM", "MARGIN_S", "STAMP_AHEAD_S", "STAMP_BEHIND_S", "SPEED_FLOOR_MM_S", "WINDOW_S",
+           "position_window_speed", "position_window_speeds"]
 
 #: a texture plate's length and width, mm (Methods)
 PLATE_LENGTH_MM = 300.0
@@ -49,6 +50,11 @@ MARGIN_S = 0.3
 #: arrived (liblsl's time correction between two PCs is good to about a millisecond; the rest is margin). Beyond it
 #: the tracker's stamps are on another clock than the one they are read on, and its scans are refused
 STAMP_AHEAD_S = 0.1
+#: how long the link may at least take, s: over a whole pass the tracker's least late sample (stamp to arrival) must
+#: come within this. A host's load delays some samples' arrival, never all of a pass's; a pass whose every sample
+#: arrived this much after its stamp was stamped on a clock behind this one (a bridge stamping its own send time
+#: late, a wrong offset), and its positions would be put that far from the taxels: refused
+STAMP_BEHIND_S = 0.25
 #: the real-time window the finger's speed is measured over, s (Methods: "averaged every 100 ms")
 WINDOW_S = 0.1
 #: the slowest speed a window is scaled with, mm/s. A window in which the finger stood still or slid back (a hand
@@ -245,9 +251,16 @@ def refuse_older_than_cue(t: np.ndarray, arrived: np.ndarray, entry: int, t_cue:
     """Raise ScanError when a pass (tracker times ``t`` (k,) s on the host clock, their arrivals ``arrived`` (k,) s,
     the finger inside the plate's used part from sample ``entry`` on) is older than its cue at ``t_cue``: a sample
     stamped more than :data:`STAMP_AHEAD_S` after it arrived (the stamps on another clock: every pass would look newer
-    than every cue), or the finger's entry arrived more than :data:`MARGIN_S` before the cue (a pass the operator made
-    before being told). Such a scan is refused, never recorded; its trial is cued again."""
+    than every cue), every sample stamped more than :data:`STAMP_BEHIND_S` before it arrived (a clock behind: the
+    positions off the taxels by that much), or the finger's entry arrived more than :data:`MARGIN_S` before the cue
+    (a pass the operator made before being told). Such a scan is refused, never recorded; its trial is cued again."""
     _refuse_stamped_ahead(t, arrived)
+    behind = float(np.min(arrived - t)) if t.size else 0.0
+    if behind > STAMP_BEHIND_S:
+        raise ScanError(f"the tracker's samples are all stamped at least {behind:.3f} s before they arrived (more "
+                        f"than the link's {STAMP_BEHIND_S:g} s): its clock is behind this machine's (a bridge stamping "
+                        "another clock than LSL's local_clock, or a wrong time offset), so the positions would not "
+                        "match the taxels: the scan is refused, not recorded")
     early = t_cue - float(arrived[entry])
     if early > MARGIN_S:
         raise ScanError(f"a scan older than its cue: the finger entered the plate's used part {early:.3f} s before "

@@ -79,3 +79,24 @@ def test_a_finger_off_the_plate_refuses_the_scan(where):
     moved[off, 2 if where == "lifted" else 1] += OFF_PLATE_MM + 12
     with pytest.raises(ScanError, match="left the plate"):
         cut_scan(_scan(t, x, xyz=moved), LAYOUT, axis)
+
+
+@pytest.mark.parametrize("offset_s, refused", [(0.0, False), (-0.3, True), (-2.0, True), (0.3, True)])
+def test_tracker_stamps_are_checked_both_ways(offset_s, refused):
+    """Issue 78 item 4: a pass whose every sample is stamped 0.3 s or 2 s before it arrived (a bridge on a clock
+    behind) is refused like one stamped ahead; a loaded host that delays many samples by up to 0.8 s, the fastest
+    arriving 2-10 ms after its stamp, is not."""
+    from rigctl.core.handheld import refuse_older_than_cue
+
+    rng = np.random.default_rng(5)
+    true_t = 10.0 + np.arange(400) / TRACKER_HZ
+    latency = rng.uniform(0.002, 0.01, true_t.size)
+    stalled = rng.uniform(size=true_t.size) < 0.3  # the host did not read them for a while
+    latency[stalled] += rng.uniform(0.0, 0.8, int(stalled.sum()))
+    arrived = true_t + latency
+    stamped = true_t + offset_s
+    if refused:
+        with pytest.raises(ScanError, match="stamped"):
+            refuse_older_than_cue(stamped, arrived, 50, 10.0)
+    else:
+        refuse_older_than_cue(stamped, arrived, 50, 10.0)
