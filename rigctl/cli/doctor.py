@@ -68,7 +68,8 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
     """Bring-up checks on the rig, one line each: PASS, FAIL with the fix, or SKIP with why its data is not
     available. Checks that move the rig (load-cell polarity, force step, drum speed) run last; the rig is stopped
     after each. With --save the report is stored, dated, in the rig config (doctor.<rig kind>). Opening never
-    acknowledges a latched fault: it is reported (--ack REASON acknowledges it). Exit status 1 if a check failed.
+    acknowledges a latched fault: it is reported (--ack REASON acknowledges it). Exit status 1 if a check failed or
+    could not run (a --check skipped, or the rig did not open).
     """
     from rigctl.acquisition import doctor as doc
 
@@ -117,5 +118,8 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
         n = report.counts()
         click.echo(f"{source.kind} rig: {n['pass']} passed, {n['fail']} failed, {n['skip']} skipped"
                    + (" (stored in the rig config)" if save else ""))
-    if not report.ok:
+    not_run = report.not_run(named=bool(checks))
+    if not_run:  # a check asked for that could not run is not a pass (`doctor && acquire` scripts)
+        click.echo(f"not checked: {', '.join(r.name for r in not_run)} could not run (exit 1)", err=True)
+    if not report.ok or not_run:
         raise SystemExit(1)

@@ -13,6 +13,7 @@ import pytest
 
 from rigctl import firmware
 from rigctl.acquisition import doctor
+from rigctl.acquisition.doctor.base import NOT_OPENED
 from rigctl.acquisition.doctor.measure import clock_error_ppm, crosstalk, step_response
 from rigctl.acquisition.rigconfig import RigConfigError, load_rig_config, validate_rig_config
 from rigctl.core.drum import DrumState
@@ -669,3 +670,29 @@ def test_a_reversed_actuator_from_power_on_is_told_from_a_reversed_cell(tmp_path
     by = checks("reversed-cell@0", ["actuator-direction", "loadcell-polarity"])
     assert by["actuator-direction"].status == "pass", by["actuator-direction"].line()
     assert by["loadcell-polarity"].status == "fail" and "A+/A-" in by["loadcell-polarity"].fix
+
+
+def test_a_named_check_that_could_not_run_exits_1(tmp_path):
+    """`rigctl doctor --check drum-speed` with the e-stop pressed (issue 76): the check cannot run (the controller is
+    in FAULT), so the command exits 1 and names it; `doctor && acquire` never reads a check not done as OK (the old
+    code: every selected check skipped, exit 0). `--check e-stop` then fails outright (the input reads open)."""
+    from click.testing import CliRunner
+
+    from rigctl.cli import main
+
+    args = ["doctor", "--inprocess", "--inject", "estop@0+600", "--no-save", "--config", str(tmp_path / "rig.json")]
+    r = CliRunner().invoke(main, [*args, "--check", "drum-speed"])
+    assert r.exit_code == 1, r.output
+    assert "SKIP  drum-speed" in r.output and "not checked: drum-speed could not run" in r.output, r.output
+    e = CliRunner().invoke(main, [*args, "--check", "e-stop"])
+    assert e.exit_code == 1 and "FAIL  e-stop" in e.output, e.output
+
+
+def test_the_report_says_which_checks_could_not_run():
+    """not_run: every skip of a named check; of the whole list, only the rig not opening or a cancel."""
+    rep = doctor.DoctorReport("2026-01-01T00:00:00+00:00", "sim", [
+        doctor.CheckResult("link", "skip", f"{NOT_OPENED} (port busy)"),
+        doctor.CheckResult("usb-serial", "skip", "simulated boards on ptys have no USB serial number"),
+        doctor.CheckResult("e-stop", "pass", "released")])
+    assert [r.name for r in rep.not_run(named=False)] == ["link"]
+    assert [r.name for r in rep.not_run(named=True)] == ["link", "usb-serial"]

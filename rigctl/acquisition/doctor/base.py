@@ -30,6 +30,11 @@ __all__ = ["CheckResult", "Check", "DoctorContext", "DoctorReport", "Skip", "STA
 STATUSES = ("pass", "fail", "skip")
 
 
+#: the start of a skip's summary when the rig could not be opened, and when the run was cancelled
+NOT_OPENED = "the rig did not open"
+CANCELLED = "cancelled"
+
+
 class Skip(Exception):
     """Raised by a check whose data is not available; the message says why (becomes ``skip: <why>``)."""
 
@@ -144,7 +149,7 @@ class DoctorContext:
     def check_cancel(self) -> None:
         """Raise :class:`Skip` if :attr:`cancel` is set (the checks' polling loops call it)."""
         if self.cancel.is_set():
-            raise Skip("cancelled")
+            raise Skip(CANCELLED)
 
     @property
     def simulated(self) -> bool:
@@ -155,7 +160,7 @@ class DoctorContext:
         """The open rig (opened on first use). Raises :class:`Skip` if it could not be opened."""
         if self._rig is None:
             if self.open_error is not None:
-                raise Skip(f"the rig did not open ({self.open_error})")
+                raise Skip(f"{NOT_OPENED} ({self.open_error})")
             assert self._opener is not None
             try:
                 self._rig = self._opener()
@@ -163,7 +168,7 @@ class DoctorContext:
                 self.pause_stream()
             except Exception as exc:  # noqa: BLE001 - reported by the link check, skipped by the others
                 self.open_error = " ".join(str(exc).split()) or type(exc).__name__
-                raise Skip(f"the rig did not open ({self.open_error})") from exc
+                raise Skip(f"{NOT_OPENED} ({self.open_error})") from exc
         return self._rig
 
     def taxel_stream(self) -> TaxelSource:
@@ -235,6 +240,16 @@ class DoctorReport:
 
     def counts(self) -> dict[str, int]:
         return {s: sum(r.status == s for r in self.results) for s in STATUSES}
+
+    def not_run(self, *, named: bool) -> list[CheckResult]:
+        """The checks that could not run. ``named``: the operator named the checks (``--check``): every skip of one
+        is a check asked for and not done (the e-stop pressed, the port held by another face, the controller in
+        FAULT). Otherwise (every check) a skip may only mean the check does not apply to this rig (no serial
+        ports on a simulated rig), and those that could not run are the ones the rig's state prevented: the rig did
+        not open, or the run was cancelled. A script's ``rigctl doctor && rigctl acquire`` must never read these
+        as OK (``rigctl doctor`` exits 1)."""
+        return [r for r in self.results if r.status == "skip"
+                and (named or r.summary.startswith((NOT_OPENED, CANCELLED)))]
 
     def to_dict(self) -> dict[str, Any]:
         return {"checked_utc": self.checked_utc, "rig": self.rig, "ok": self.ok,
