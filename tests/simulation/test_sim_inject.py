@@ -170,3 +170,38 @@ def test_cli_refuses_what_a_rig_cannot_inject_before_it_opens(tmp_path):
         assert r.exit_code == 2 and words in r.output, (args, r.output)
         assert "Traceback" not in r.output
     assert not (tmp_path / "a.h5").exists() and not (tmp_path / "b.h5").exists()
+
+
+def test_host_silence_trips_the_watchdog_though_a_reply_is_held_for_the_cut_host(monkeypatch):
+    """Issue 76: `host-silence@0+2.5` on `rigctl sim` (the pulled USB cable) did not trip the watchdog in 2 of 3 cuts:
+    the drum turned at 100 mm/s and 300 g through the whole cut. The class: the watchdog check restarted its count
+    while a reply was "on its way" to the host, and a reply the simulator held when the cable was pulled is on its
+    way to nobody. Here every reply is held for ever (reply_on_its_way always True, the worst case of the race):
+    the controller, on its own (no host asks it anything), latches WATCHDOG within WATCHDOG_MS (+ the checks) of the
+    rig's clock (+ the checks), the drum at rest and the actuator backed off. The old check never tripped."""
+    from rigctl.devices.wire import HoldingRegister
+
+    with open_rig("sim") as rig:
+        rig.drum.write_holding(HoldingRegister.WATCHDOG_MS, 1000)  # a face on `rigctl sim`'s ports: the default
+        rig.home_if_pending()
+        rig.drum.set_speed(60.0)
+        rig.drum.set_force(300.0)
+        rig.drum.press()
+        rig.drum.wait_force_settled(30.0)
+        rig.drum.run()
+        rig.drum.wait_speed_steady(30.0)
+        sim = rig.backend.sim
+        mega, clock = sim.mega, sim.clock
+        monkeypatch.setattr(mega, "reply_on_its_way", lambda: True)
+        rig.backend.inject_faults([parse_fault("host-silence@0+2.5")])
+        t0 = clock.now()
+        while clock.now() - t0 < 2.4 and Fault.WATCHDOG not in mega.faults:
+            clock.sleep(0.05)
+        tripped_s = clock.now() - t0
+        assert Fault.WATCHDOG in mega.faults, f"no WATCHDOG after {tripped_s:.2f} s of the cut"
+        # WATCHDOG_MS and the server's checks (two in a row, 10 ms apart, on a thread a loaded machine starves while
+        # the world runs on): 1.58 s of the rig's clock once at load ~20
+        assert tripped_s < 2.0, tripped_s
+        clock.sleep(1.5)
+        assert abs(sim.model.drum_speed_mm_s) < 1.0 and sim.model.contact_force_g < 5.0, \
+            (sim.model.drum_speed_mm_s, sim.model.contact_force_g)
