@@ -723,7 +723,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.rig_events.happened.connect(self._on_rig_event)
         if self.poller.latest is not None:
             self._show_faults(int(self.poller.latest.faults))
-        self.commands = CommandExecutor(h.drum)
+        self.commands = CommandExecutor(h.control)
         if getattr(h.taxels, "ring", None) is not None:  # the handheld rig's sensor model keeps no live stream
             self._attach_sensor(h, sensor_layout(h))
         if h.control.has_drum:

@@ -320,7 +320,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.set_enabled(self._connected)
 
     def attach(self, drum, poller, commands, control: RigControl | None = None) -> None:
-        """Bind to a connected drum (a :class:`rigctl.core.interfaces.DrumController`), its status poller and
+        """Bind to a connected drum (read-only: a :class:`rigctl.operations.DrumView`), its status poller and
         command executor, and the open rig (a :class:`rigctl.operations.RigControl`) that the panel's commands go
         through."""
         self.drum, self.poller, self.commands = drum, poller, commands
@@ -350,11 +350,10 @@ class ControlPanel(QtWidgets.QWidget):
         if self.commands is None or self._refused_by_run() or self._refuse_setpoints():
             return
         speed, force = float(self.speed.value()), float(self.force.value())
-        if self.ops is not None:
-            self.commands.submit(f"set {speed:g} mm/s, {force:g} g", self.ops.apply_setpoints, speed, force)
-        else:
-            self.commands.submit("set speed", self.drum.set_speed, speed)
-            self.commands.submit("set force", self.drum.set_force, force)
+        if self.ops is None:  # no rig attached: nothing to send to
+            self.show_result(False, "refused: no rig connected")
+            return
+        self.commands.submit(f"set {speed:g} mm/s, {force:g} g", self.ops.apply_setpoints, speed, force)
         self.acted.emit(f"setpoints applied: speed {speed:g} mm/s, force {force:g} g")
 
     def command(self, name: str) -> None:
@@ -383,7 +382,10 @@ class ControlPanel(QtWidgets.QWidget):
             self.commands.submit("home", self.ops.home)
             self.acted.emit("home sent")
             return
-        self.commands.submit(name.replace("_", " "), getattr(self.drum, name))
+        if self.ops is None:
+            self.show_result(False, f"{name.replace('_', ' ')} refused: no rig connected")
+            return
+        self.commands.submit(name.replace("_", " "), getattr(self.ops, name))  # the owner's (stop_drum, tare)
         self.acted.emit(f"{name.replace('_', ' ')} sent")
 
     def drum_turning(self) -> bool:

@@ -505,7 +505,24 @@ class ProtocolTab(QtWidgets.QWidget):
         elif ev.kind == "acknowledged":
             self.latched = None
             self._set_status(row, "acknowledged: recorded again")
-            self._notify(logging.INFO, f"protocol {self.protocol_name()}: the fault was acknowledged, the run goes on")
+            self._notify(logging.INFO, f"protocol {self.protocol_name()}: the fault was acknowledged (nothing moved: "
+                         f"{self._rig_words()}); Resume starts the run again (HOME and TARE first)")
+
+    def _rig_words(self) -> str:
+        """What the rig does now in the controller's words, never the run's (:func:`rigctl.core.drum.status_line` of
+        the monitor's last read, with the latch held): "actuator released" only when the controller reads the
+        actuator home and the load cell below :data:`rigctl.core.drum.RELEASED_G` (issue 76: a paused run said
+        "rig released" while an e-stop left the sensor pressed at 304 g)."""
+        from rigctl.core.drum import status_line
+
+        h = getattr(self.main, "handle", None)
+        control = getattr(h, "control", None)
+        poller = getattr(self.main, "poller", None)
+        st = getattr(poller, "latest", None)
+        if st is None or not getattr(poller, "ok", True):
+            return "the rig's state unknown (no status from its controller)"
+        latch = getattr(control, "latch", None)
+        return status_line(st, None if latch is None else latch.label)
 
     def take_rig_defaults(self, control) -> None:
         """A rig connected (a :class:`rigctl.operations.RigControl`): 'Publish on LSL' as its rig config says
@@ -536,14 +553,14 @@ class ProtocolTab(QtWidgets.QWidget):
                 el = time.monotonic() - self._trial_started
                 self.trial_bar.setValue(int(min(95, 100 * el / max(float(cur.duration_s), 1e-3))))
                 self.trial_bar.setFormat(f"trial {cur.trial_id}: {el:.1f} s (settling, then {cur.duration_s:g} s)")
+            rig = self._rig_words()
             if self.latched:
-                state = f"LATCHED: {self.latched} - acknowledge it in the fault dialog to go on"
+                state = f"LATCHED: {self.latched} - {rig} - acknowledge it in the fault dialog, then Resume"
             elif self.pause_event.is_set() and (self._halted or self.stopped_reason):
                 why = f" ({self.stopped_reason})" if self.stopped_reason else ""
-                state = (f"STOPPED{why}: the rig is at rest. Resume records the discarded trial again, Abort ends "
-                         "the run")
+                state = (f"STOPPED{why}: {rig}. Resume records the discarded trial again, Abort ends the run")
             elif self.pause_event.is_set():
-                state = "PAUSED (rig released)" if self._paused else "pausing after the current trial..."
+                state = f"PAUSED: {rig}" if self._paused else f"pausing after the current trial ({rig})..."
             elif cur is not None:
                 state = f"trial {cur.trial_id}: texture {cur.texture}, {cur.speed_mm_s:g} mm/s, {cur.force_g:g} g"
             else:

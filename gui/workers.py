@@ -43,7 +43,7 @@ class RigHandle:
     control : rigctl.operations.RigControl
         What the panels call (setpoints, press -> settle -> run, commands, status, the rig config, the mounted
         plate) and listen to (its ``monitor``); the rig itself is the library's, never the GUI's.
-    drum : rigctl.core.interfaces.DrumController (a DrumClient)
+    drum : rigctl.operations.DrumView (the controller read-only: every command goes through ``control``)
     taxels : rigctl.core.interfaces.TaxelSource (a TaxelStream)
     """
 
@@ -90,12 +90,13 @@ def open_rig(source: RigSource, *, config=None, host_config_path=None, prompt=No
 class CommandExecutor:
     """Runs drum commands one at a time in a worker thread; results land in :attr:`results` for the GUI to drain.
 
-    Each result is ``(name, ok, message)``. :meth:`emergency_stop` does not queue behind other commands: it calls
-    ``stop`` on a fresh thread at once (the client's lock serialises it with any request in flight).
+    Each result is ``(name, ok, message)``. :meth:`emergency_stop` does not queue behind other commands: it calls the
+    rig owner's ``stop`` (:meth:`rigctl.operations.RigControl.stop`) on a fresh thread at once (the client's lock
+    serialises it with any request in flight). The commands are the owner's methods: the GUI holds no drum client.
     """
 
-    def __init__(self, drum):
-        self.drum = drum
+    def __init__(self, control: RigControl):
+        self.control = control
         self.results: queue.SimpleQueue = queue.SimpleQueue()
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._thread = threading.Thread(target=self._loop, name="drum-commands", daemon=True)
@@ -105,7 +106,7 @@ class CommandExecutor:
         self._queue.put((name, fn, args))
 
     def emergency_stop(self) -> threading.Thread:
-        t = threading.Thread(target=self._call, args=("STOP", self.drum.stop, ()), name="drum-stop", daemon=True)
+        t = threading.Thread(target=self._call, args=("STOP", self.control.stop, ()), name="drum-stop", daemon=True)
         t.start()
         return t
 

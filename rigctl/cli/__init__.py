@@ -45,6 +45,7 @@ COMMANDS = {
     "udev-rules": "rigctl.cli.udev:udev_rules",
     "serve": "rigctl.cli.serve:serve",
     "rigs": "rigctl.cli.rigs:rigs",
+    "safety": "rigctl.cli.safety:safety",
 }
 
 SHORT_HELP = {
@@ -64,6 +65,7 @@ SHORT_HELP = {
     "udev-rules": "Print udev rules: stable /dev names for the boards by USB serial number.",
     "serve": "Headless run queue with an HTTP API (127.0.0.1 by default).",
     "rigs": "List the installed rigs (rigctl's own and plugins'), whether each loads.",
+    "safety": "The host's safety rules: `rigctl safety table` prints them (markdown).",
 }
 
 

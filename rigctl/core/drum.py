@@ -284,6 +284,8 @@ def fault_advice(faults: int) -> str:
 #: a tared load-cell reading at or above this is force on the sensor (the actuator presses it), g: above the HX711's
 #: noise and a plate's drag at rest (FORCE_TOLERANCE_G's default is 15 g)
 PRESSING_G = 20.0
+#: the sensor counts as released (the word "released" on every face) only below this force read, g
+RELEASED_G = 5.0
 #: the actuator is back at home (the sensor released) within this much of it, mm (as ``wait_released``'s default)
 HOME_TOLERANCE_MM = 0.05
 
@@ -298,13 +300,16 @@ def actuator_words(st: "DrumStatus") -> str:
     - drivers off (an e-stop, a stop category 0: they stop where they stand) away from home or under load:
       ``"drivers off, actuator where it stopped, pressing 508 g"`` (or ``"..., 2.4 mm out, sensor free"``);
     - drivers on, on the way home: ``"actuator backing off, pressing 120 g"`` (or ``"actuator backing off"``);
-    - home and no force: ``"actuator released"``.
+    - home and the load cell below :data:`RELEASED_G`: ``"actuator released"`` (never otherwise);
+    - home with a few grams read: ``"actuator home, load cell reads 12 g"``.
 
     Force ``st.force_g`` counts as pressing from :data:`PRESSING_G`; home is within :data:`HOME_TOLERANCE_MM`."""
     pressing = float(st.force_g) >= PRESSING_G
     away = float(st.actuator_mm) > HOME_TOLERANCE_MM and not st.home_switch
     if not (pressing or away):
-        return "actuator released"
+        if abs(float(st.force_g)) < RELEASED_G:
+            return "actuator released"
+        return f"actuator home, load cell reads {float(st.force_g):.0f} g"
     load = f"pressing {float(st.force_g):.0f} g" if pressing else "sensor free"
     if not st.drivers_enabled:
         where = "actuator where it stopped" + ("" if pressing else f", {float(st.actuator_mm):.1f} mm out")

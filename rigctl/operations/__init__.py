@@ -5,12 +5,17 @@ One package of small modules, each one job an operator does:
 - :class:`RigSource` (``_source``): where a rig comes from (a kind of :data:`rigctl.rigs.KINDS`, its ports or
   recording); :func:`open_control` opens it as a :class:`RigControl` (``_control``): setpoints checked against the
   controller's limits, run at a speed and force (press -> settle -> run), stop, tare, home, clear a fault, mount a
-  plate, status; :class:`Home` says what opening does with a latched fault. Its :attr:`RigControl.monitor`
+  plate, status; :class:`Home` says what opening does with a latched fault; its ``drum`` is a read-only
+  :class:`DrumView` (``_drum_view``): no face holds the drum client. Its :attr:`RigControl.monitor`
   (:class:`RigMonitor`, ``_monitor``) polls the status, feeds the controller's watchdog, publishes
   :class:`RigEvent` s to the faces and runs the dead man's switch (a face's :class:`Heartbeat`).
 - :func:`calibrate_loadcell`, :func:`record_taxel_normalisation`, :func:`store_taxel_normalisation`
   (``_calibrate``): calibrating an open rig (checked, stored, taken up by the rig at once).
 - :class:`ProtocolRun` (``_run``): run, pause, resume, abort a protocol (in this thread or a worker).
+- The host's safety rules, once (``_rules``): :data:`SAFETY_TRANSITIONS` (the rig's and the run's states, the events
+  every face sends, the allowed transitions with their actions; anything else :class:`SafetyRefused`),
+  :func:`safety_decide`, :class:`SafetyTable` (one state behind one lock), :func:`safety_table_markdown` (``rigctl
+  safety table``, docs/safety.md), and :data:`RUN_STATES`, the one run-state vocabulary of every face.
 - :func:`setpoint_refusals` / :class:`SetpointRefusal` (``_setpoints``): the setpoint policy in the operator's words.
 - :func:`doctor` (``_doctor``): the bring-up checks (:mod:`rigctl.acquisition.doctor`) on a source or an open rig,
   the dated report stored in the rig config.
@@ -55,13 +60,24 @@ from rigctl.operations._calibrate import (
 )
 from rigctl.operations._control import Home, RigControl, RunStarted, open_control
 from rigctl.operations._doctor import doctor
+from rigctl.operations._drum_view import DrumView
 from rigctl.operations._handheld import Prediction, ScanClassifier, recorded_predictions
 from rigctl.operations._import import IMPORT_PRESETS, ImportReport, import_recordings
 from rigctl.operations._live import LIVE_WINDOW_MAX_S, LiveEncoder, SpikeRing, live_ring, spike_capacity
 from rigctl.operations._lsl import LslPublisher, lsl_requested
 from rigctl.operations._monitor import DEADMAN_TIMEOUT_S, Heartbeat, RigEvent, RigMonitor, StatusHistory
 from rigctl.operations._queue import RUN_QUEUE_STATES, QueuedRun, QueueError, RunQueue, lock_queue_file, read_queue_file
-from rigctl.operations._run import RUN_STATES, ProtocolRun
+from rigctl.operations._rules import (
+    RUN_STATES,
+    TRANSITIONS as SAFETY_TRANSITIONS,
+    Event as SafetyEvent,
+    Refused as SafetyRefused,
+    SafetyState,
+    SafetyTable,
+    decide as safety_decide,
+    table_markdown as safety_table_markdown,
+)
+from rigctl.operations._run import ProtocolRun
 from rigctl.operations._setpoints import SetpointRefusal, setpoint_refusals
 from rigctl.operations._source import KINDS, RigSource
 from rigctl.operations._trial_spikes import TrialSpikes, session_taxel_range, trial_spikes
@@ -69,12 +85,14 @@ from rigctl.operations._trial_spikes import TrialSpikes, session_taxel_range, tr
 __all__ = [
     "LslPublisher", "lsl_requested", "RunQueue", "QueuedRun", "QueueError", "RUN_QUEUE_STATES", "lock_queue_file",
     "read_queue_file",
-    "RigSource", "KINDS", "open_control", "RigControl", "Home", "RunStarted", "RigError", "RigOpenError", "FaultAtOpen",
+    "RigSource", "KINDS", "open_control", "RigControl", "DrumView", "Home", "RunStarted", "RigError", "RigOpenError", "FaultAtOpen",
     "RigMonitor", "RigEvent", "Heartbeat", "StatusHistory", "DEADMAN_TIMEOUT_S",
     "SetpointRefusal", "setpoint_refusals", "doctor",
     "LiveEncoder", "SpikeRing", "spike_capacity", "LIVE_WINDOW_MAX_S", "live_ring",
     "AnalysisPlan", "ANALYSIS_TASKS", "BaselineError", "run_analyses", "load_or_encode", "encoded_path_for",
     "train_model", "TrainedModel", "force_leak_report", "ProtocolRun", "RUN_STATES",
+    "SAFETY_TRANSITIONS", "SafetyEvent", "SafetyRefused", "SafetyState", "SafetyTable", "safety_decide",
+    "safety_table_markdown",
     "TrialSpikes", "trial_spikes", "session_taxel_range",
     "import_recordings", "ImportReport", "IMPORT_PRESETS", "ScanClassifier", "Prediction", "recorded_predictions",
     "calibrate_loadcell", "record_taxel_normalisation", "store_taxel_normalisation", "StoredNormalisation",

@@ -40,7 +40,7 @@ def calibrate_loadcell(control: RigControl, mass_g: float, *, place_mass: Callab
         rig.home_if_pending()
     if place_mass is None:
         place_mass, remove_mass = cal.simulated_mass(rig_of(control))
-    result = cal.calibrate_loadcell(control.drum, mass_g, place_mass=place_mass, remove_mass=remove_mass,
+    result = cal.calibrate_loadcell(rig.drum, mass_g, place_mass=place_mass, remove_mass=remove_mass,
                                     config_file=config_file)
     control.host_config = load_rig_config(config_file)
     return result

@@ -14,19 +14,22 @@ from __future__ import annotations
 import enum
 import logging
 import os
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
 from rigctl.acquisition.rig import Rig
-from rigctl.acquisition.safety import Acknowledgement, Latch
+from rigctl.acquisition.safety import Acknowledgement, Latch, LatchedFault
 from rigctl.core.drum import DrumLimits, DrumStatus, SetpointRangeError
 from rigctl.core.faults import FaultInjector
-from rigctl.core.interfaces import DrumController, MassPlacer, TaxelSource
+from rigctl.core.interfaces import MassPlacer, TaxelSource
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
+from rigctl.operations._drum_view import DrumView
 from rigctl.operations._monitor import RigEvent, RigMonitor
+from rigctl.operations._rules import Event, Refused, SafetyState, decide
 from rigctl.operations._setpoints import SetpointRefusal, setpoint_refusals
 from rigctl.operations._source import RigSource
 from rigctl.rigs import open_rig
@@ -152,6 +155,8 @@ class RigControl:
         self._monitor: RigMonitor | None = None
         self._stop_listeners: list[Callable[[str], object]] = []
         self.active_run: _Run | None = None
+        #: the one lock the table's decisions for this rig are taken under (:meth:`start_allowed`)
+        self._rules_lock = threading.RLock()
 
     @property
     def monitor(self) -> RigMonitor:
@@ -173,7 +178,7 @@ class RigControl:
 
     def _events(self) -> RigMonitor:
         if self._monitor is None:
-            self._monitor = RigMonitor(self.drum if self.has_drum else None, self.stop)
+            self._monitor = RigMonitor(self._rig.drum if self.has_drum else None, self.stop)
             self._monitor.subscribe(self._latch_from)
             self._rig.safety.listeners.append(self._latch_event)
             cues = getattr(self._rig, "cue_listeners", None)
@@ -203,12 +208,39 @@ class RigControl:
         self._stop_listeners.append(fn)
         return lambda: self._stop_listeners.remove(fn) if fn in self._stop_listeners else None
 
+    # ------------------------------------------------------------------------------------------------- the rules
+    def safety_state(self) -> SafetyState:
+        """The host's state of this rig for the safety table (:mod:`rigctl.operations._rules`), from the truth: a
+        face holds it (this object is open), the latch held, the e-stop's input as the monitor last read it, the run
+        on it (:attr:`active_run`'s state)."""
+        st = self._monitor.latest if self._monitor is not None else None
+        run = self.active_run
+        state = getattr(run, "state", "none") if run is not None else "none"
+        return SafetyState(link=True, latch=self.latch is not None,
+                           estop=bool(st is not None and getattr(st, "estop_open", False)),
+                           run=state if state != "latched" or self.latch is not None else "paused")
+
+    def start_allowed(self, what: str) -> None:
+        """Ask the safety table whether a start (``what``: PRESS, RUN, HOME, a run's resume) is allowed now; raises
+        :class:`rigctl.acquisition.safety.LatchedFault` naming the latch when a latched fault refuses it (the
+        faces' one refusal), :class:`rigctl.operations.SafetyRefused` for any other refusal. Nothing is sent."""
+        with self._rules_lock:
+            try:
+                decide(self.safety_state(), Event.START)
+            except Refused:
+                latch = self.latch
+                if latch is not None:
+                    raise LatchedFault(latch, f"{what} refused") from None
+                raise
+
     # ------------------------------------------------------------------------------------------------- parts
     @property
-    def drum(self) -> DrumController:
-        """The drum controller's client (reads and single commands; the STOP policy and the safety latch are this
-        object's: :meth:`stop`, :meth:`acknowledge`)."""
-        return self._rig.drum
+    def drum(self) -> DrumView:
+        """The drum controller, read-only (:class:`rigctl.operations.DrumView`: its status, settings, limits, the
+        waits on them, the rig's clock). Nothing a face holds moves the rig by itself: every command goes through
+        this object's methods (:meth:`press`, :meth:`run_at`, :meth:`home`, :meth:`stop`, :meth:`tare`, ...), where
+        a latched fault refuses it before anything is sent (docs/safety.md)."""
+        return DrumView(self._rig.drum)
 
     @property
     def taxels(self) -> TaxelSource:
@@ -314,23 +346,29 @@ class RigControl:
     def apply_setpoints(self, speed_mm_s: float, force_g: float) -> None:
         """Send both setpoints (mm/s, g) once both are accepted; nothing is sent otherwise (SetpointRangeError)."""
         self._check(speed_mm_s=speed_mm_s, force_g=force_g)
-        self.drum.set_speed(float(speed_mm_s))
-        self.drum.set_force(float(force_g))
+        self._rig.drum.set_speed(float(speed_mm_s))
+        self._rig.drum.set_force(float(force_g))
 
     def press(self, force_g: float) -> float:
         """Press to ``force_g`` (g) and wait until the force has settled (:meth:`rigctl.acquisition.rig.Rig.press`);
         returns the time it took, s. SetpointRangeError (nothing sent), DrumTimeout, DrumFault."""
+        self.start_allowed("PRESS")  # a refused command sends nothing (not even the setpoint check's read)
         self._check(force_g=force_g)
         return self._rig.press(float(force_g))
 
     def run_at(self, speed_mm_s: float, force_g: float) -> RunStarted:
         """Run the drum at ``speed_mm_s`` (mm/s) with the force loop holding ``force_g`` (g): both checked first,
         then the speed set, PRESS until the force has settled, RUN. The drum never turns before the sensor is
-        loaded. SetpointRangeError (nothing sent), DrumTimeout (the force did not settle), DrumFault."""
+        loaded. Refused while a fault is latched (:class:`rigctl.acquisition.safety.LatchedFault`) before anything is
+        sent, the speed setpoint too. SetpointRangeError (nothing sent), DrumTimeout (the force did not settle),
+        DrumFault."""
+        self.start_allowed("RUN")
         self._check(speed_mm_s=speed_mm_s, force_g=force_g)
-        self.drum.set_speed(float(speed_mm_s))
+        drum = self._rig.drum
+        drum.set_speed(float(speed_mm_s))
         settle_s = self._rig.press(float(force_g))
-        self.drum.run()
+        self._rig.safety.refuse("RUN")  # a latch that tripped while the force settled
+        drum.run()
         return RunStarted(float(speed_mm_s), float(force_g), settle_s)
 
     # ------------------------------------------------------------------------------------------------- safety
@@ -373,17 +411,17 @@ class RigControl:
 
     def stop_drum(self) -> None:
         """Drum to rest, the force loop keeps holding."""
-        self.drum.stop_drum()
+        self._rig.drum.stop_drum()
 
     def tare(self) -> None:
         """Zero the load cell (actuator released)."""
-        self.drum.tare()
+        self._rig.drum.tare()
 
     def home(self) -> None:
         """The start (the GUI's Home): wait for the actuator to back off, drive it to its home switch and TARE there;
         blocks until IDLE. Refused while a fault is latched (:class:`rigctl.acquisition.safety.LatchedFault`:
         :meth:`acknowledge` it first). DrumError / DrumTimeout / DrumFault (HOME failed: latched)."""
-        self._rig.safety.refuse("HOME")
+        self.start_allowed("HOME")
         with self._rig.latching("HOME"):
             self._rig.home_pending = True
             self._rig.home_if_pending()
@@ -399,7 +437,7 @@ class RigControl:
         if self.latch is not None:
             self.acknowledge("clear fault", by=by)
             return
-        self.drum.clear_fault()
+        self._rig.drum.clear_fault()
 
     def mount_plate(self, label: str, prompt: Callable[[str], object] | None = None) -> str:
         """Release the sensor and mount plate ``label`` (taken in the set's spelling, ``"l"`` -> ``"L"``); returns

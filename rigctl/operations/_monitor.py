@@ -164,7 +164,7 @@ class RigMonitor:
 
     def __init__(self, drum: DrumMonitor | None, stop: Callable[[str], object], *, period_s: float = 0.1,
                  history_s: float = 60.0) -> None:
-        self.drum, self._stop, self.period_s = drum, stop, float(period_s)
+        self._drum, self._stop, self.period_s = drum, stop, float(period_s)
         self.history = StatusHistory(int(history_s / period_s) + 1)
         self.latest: DrumStatus | None = None
         self.ok = False
@@ -277,7 +277,7 @@ class RigMonitor:
         ``wait_s`` of the rig's time either (a world run faster than real time, up to 10x, is polled every period of its
         own time: the controller's 1 s watchdog fed well within it; a world slower than real time is polled every
         period of wall time, for the dead man's switch)."""
-        pause_on(getattr(self.drum, "clock", None), self._halt, wait_s)
+        pause_on(getattr(self._drum, "clock", None), self._halt, wait_s)
 
     def _dead_faces(self, silent: list[tuple[Heartbeat, float]], now: float) -> None:
         """A face is silent: see what the rig does (one read) and STOP it when it moves under a command (again every
@@ -308,10 +308,10 @@ class RigMonitor:
         self._emit("deadman", reason, st)
 
     def _poll(self, now: float) -> None:
-        if self.drum is None:  # a rig without a drum (the handheld rig): nothing to read, nothing moves by itself
+        if self._drum is None:  # a rig without a drum (the handheld rig): nothing to read, nothing moves by itself
             return
         try:
-            st = self.drum.read_status()
+            st = self._drum.read_status()
         except Exception as exc:  # noqa: BLE001 - any failure means the link is down; shown, then retried
             self._fail(exc)
             return

@@ -6,11 +6,11 @@ One run owns the rig at a time (a second one waits, ``queued``); each is a :clas
 ``running`` or ``paused``) is queued again at the front when the queue is reopened, and continues its session file
 with the session's own resume (no trial recorded twice, none lost: each finished trial is in the file the moment it
 is reported); a stopped or failed run is continued the same way on request (:meth:`RunQueue.resume`).
-:meth:`RunQueue.stop` is STOP: the drum to rest at once, the current run aborted, the queue held until
-:meth:`RunQueue.release`.
+:meth:`RunQueue.stop` is STOP: the drum to rest at once, the current run paused (resumable by one
+:meth:`RunQueue.resume`, which lets the queue go on), the queue held until then or :meth:`RunQueue.release`.
 
 Run states: ``queued``, ``running``, ``pausing``, ``paused``, ``aborting``, ``done`` (every planned trial complete),
-``stopped`` (ended early: aborted, STOP, a lost link; resumable), ``failed`` (an error before or while recording),
+``stopped`` (ended early: aborted, a lost link; resumable), ``failed`` (an error before or while recording),
 ``aborted`` (taken off the queue before it started).
 """
 
@@ -37,6 +37,7 @@ from rigctl.core.errors import describe_error
 from rigctl.core.progress import ProgressEvent
 from rigctl.operations._control import RigControl
 from rigctl.operations._monitor import RigEvent
+from rigctl.operations._rules import RUN_STATES
 from rigctl.operations._run import ProtocolRun
 from rigctl.storage.journal import WriterLock, WriterLockHeld
 from rigctl.storage.outputs import OutputError, OutputLocked, check_output, place_in_folder
@@ -46,7 +47,8 @@ __all__ = ["QueueError", "QueuedRun", "RunQueue", "RUN_QUEUE_STATES", "lock_queu
 
 log = logging.getLogger(__name__)
 
-RUN_QUEUE_STATES = ("queued", "running", "pausing", "paused", "aborting", "done", "stopped", "failed", "aborted")
+#: the run states (one vocabulary on every face: :data:`rigctl.operations.RUN_STATES`; the old name kept)
+RUN_QUEUE_STATES = RUN_STATES
 #: states of a run that has not ended
 ACTIVE = ("queued", "running", "pausing", "paused", "aborting")
 #: the queue file's format version
@@ -428,6 +430,8 @@ class RunQueue:
                     self.current.resume()
                 except RuntimeError as exc:  # latched meanwhile
                     raise QueueError(f"run {run_id}: {exc}", 409) from None
+                self.held = False  # the one start after STOP: the run goes on, and the queue after it
+                self._wake.notify_all()
                 self._set(run, state="running", cause="", latch=None)
                 return run
             if run.state not in ("stopped", "failed"):
@@ -455,14 +459,18 @@ class RunQueue:
 
     def stop(self) -> bool:
         """STOP, at once: the drum to rest and the actuator home (:meth:`RigControl.stop`, not waiting for the
-        run), the current run aborted, the queue held until :meth:`release`. True when the controller acknowledged
-        STOP."""
+        run); the current run pauses (the trial in progress discarded, recorded again at its resume: STOP means one
+        thing on every face, docs/safety.md), and the queue is held: no queued run starts. The start is one
+        ``resume`` of the paused run (it lets the queue go on after it) or :meth:`release`. Abort is its own
+        action (:meth:`abort`). True when the controller acknowledged STOP."""
         with self._lock:
             self.held = True
-            current = self.current
-        acknowledged = bool(self.control.stop())
-        if current is not None:
-            current.abort()
+            current, current_id = self.current, self.current_id
+            run = self.runs.get(current_id) if current_id is not None else None
+            if run is not None and current is not None and run.state in ("running", "pausing"):
+                self._set(run, state="pausing", cause="STOP: the trial in progress is discarded; resume records "
+                          "it again")
+        acknowledged = bool(self.control.stop())  # the run on the rig hears it first and pauses (ProtocolRun.stop)
         self._emit({"type": "stop", "acknowledged": acknowledged})
         return acknowledged
 

@@ -26,11 +26,9 @@ from rigctl.core.progress import ProgressEvent
 from rigctl.operations._control import RigControl, rig_of
 from rigctl.operations._lsl import LslPublisher
 from rigctl.operations._monitor import RigEvent
+from rigctl.operations._rules import RUN_STATES
 
 __all__ = ["ProtocolRun", "RUN_STATES"]
-
-#: the states of a run
-RUN_STATES = ("ready", "running", "pausing", "paused", "latched", "aborting", "done")
 
 
 class ProtocolRun:
@@ -139,6 +137,8 @@ class ProtocolRun:
         latch = self.control.latch
         if latch is not None and self.running:
             raise LatchedFault(latch, "resume refused")
+        if self.running:  # the table's start (one rule for every face's resume)
+            self.control.start_allowed("resume")
         self.pause_event.clear()
 
     def acknowledge(self, reason: str, *, by: str) -> Acknowledgement:

@@ -5,7 +5,7 @@
 - ``POST /runs`` (``{"protocol": name}`` or ``{"toml": text}``, ``"out"``, ``"overwrite"``) -> ``{"id", ...}``;
   ``GET /runs``, ``GET /runs/{id}`` (state, trials done/total, errors);
 - ``POST /runs/{id}/pause|resume|abort`` (resume: after a pause, or a stopped or failed run continued from its
-  session); ``POST /stop`` (STOP at once, the current run aborted, the queue held); ``POST /queue/release`` (queued
+  session); ``POST /stop`` (STOP at once, the current run paused, the queue held); ``POST /queue/release`` (queued
   runs start again after STOP); ``POST /ack`` (``{"reason": text}``: the operator's acknowledgement of a latched
   fault, :meth:`RigControl.acknowledge`);
 - ``GET /events``: server-sent events, one JSON object per progress, trial, run and STOP event (the progress events
@@ -268,8 +268,9 @@ def _stop_and_events(app: FastAPI, run_queue: RunQueue, hub: EventHub) -> None:
 
     @app.post("/stop")
     async def stop() -> dict[str, Any]:
-        """STOP, at once (the GUI's STOP): drum to rest, actuator home, the current run aborted, the queue held
-        until ``POST /queue/release``. Served in a thread of its own, whatever else the server is doing."""
+        """STOP, at once (the GUI's STOP): drum to rest, actuator home, the current run paused (one ``POST
+        /runs/{id}/resume`` goes on; abort is ``POST /runs/{id}/abort``), the queue held until that resume or ``POST
+        /queue/release``. Served in a thread of its own, whatever else the server is doing."""
         return {"acknowledged": await _in_own_thread(run_queue.stop, "serve-stop"), "held": True}
 
     @app.get("/events", response_model=None)

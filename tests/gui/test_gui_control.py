@@ -92,8 +92,10 @@ def test_out_of_range_and_zero_setpoints_are_refused_visibly(window, qapp, qtbot
     assert rig_of(window.handle.control).backend.sim.mega.write_requests == writes  # nothing refused reached the controller
     assert drum.read_holding(HoldingRegister.SPEED_SETPOINT_0P1MMS) == 500
     # and the library refuses it again before anything is sent, reported in the panel
-    window.commands.submit("set speed", drum.set_speed, limit * 3)
+    window.commands.submit("set speed", window.handle.control.apply_setpoints, limit * 3, 300.0)
     assert wait_for(qapp, lambda: "failed" in panel.message.text(), 5), panel.message.text()
+    assert rig_of(window.handle.control).backend.sim.mega.write_requests == writes
+    assert not hasattr(drum, "set_speed")  # the GUI holds the controller read-only (issue 76)
 
 
 PROTOCOL = """

@@ -241,3 +241,42 @@ def test_the_latched_run_banner_goes_once_acknowledged_or_aborted(inprocess_wind
         _abort(tab, qapp, qtbot)
     if window.handle.control.latch is not None:
         _acknowledge(window, qapp, qtbot, "test cleanup")
+
+
+def test_the_protocol_tab_never_says_released_while_the_sensor_is_pressed(inprocess_window, qapp, qtbot, tmp_path):
+    """Issue 76: after the fault dialog's acknowledgement of an e-stop that stopped a run mid-trial, the Protocol tab
+    read "PAUSED (rig released)" (from the run's pause flag) and its log "the run goes on" while the sensor stayed
+    pressed. Its words now come from the controller's state (the monitor's last read): "pressing N g" with N the
+    controller's reading, "released" only when it reads the actuator home and < 5 g. Judged against the simulated
+    rig's true contact force. ``RIGCTL_SCREENSHOT`` (a .png path): the window is grabbed there (the issue's note)."""
+    import os
+
+    window = inprocess_window
+    tab = window.protocol
+    model = rig_of(window.handle.control).backend.engine.model
+    tab.load(gui_protocol(tmp_path, 6))
+    tab.out_edit.setText(str(tmp_path / "estop_ack.h5"))
+    tab.resume_box.setChecked(False)
+    qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
+    assert wait_for(qapp, lambda: _state(window) in (DrumState.FORCE_SETTLED, DrumState.RUNNING)
+                    and model.contact_force_g > 100, 90), tab.status.text()
+    _controller(window).set_estop(True)
+    assert wait_for(qapp, lambda: "LATCHED" in tab.status.text() and "pressing" in tab.status.text(), 30), \
+        tab.status.text()
+    assert "released" not in tab.status.text(), tab.status.text()
+    _acknowledge(window, qapp, qtbot, "a test pressed the e-stop mid-run")
+    window.tabs.setCurrentWidget(tab)
+    assert wait_for(qapp, lambda: ("PAUSED" in tab.status.text() or "STOPPED" in tab.status.text())
+                    and "pressing" in tab.status.text(), 30), tab.status.text()
+    wait_for(qapp, lambda: False, 1.0)  # a few polls and repaints: the words stay true
+    text, truth = tab.status.text(), model.contact_force_g
+    assert truth > 5.0, truth  # acknowledging moved nothing: the sensor is still pressed
+    assert "released" not in text and "pressing" in text, (text, truth)
+    shown = int(text.split("pressing ", 1)[1].split(" g")[0])
+    assert abs(shown - window.poller.latest.force_g) < 30, (text, window.poller.latest)
+    window.events.drain()
+    log = "\n".join(e[3] for e in window.events.entries)
+    assert "fault was acknowledged" in log and "the run goes on" not in log, log[-2000:]
+    if os.environ.get("RIGCTL_SCREENSHOT"):
+        window.grab().save(os.environ["RIGCTL_SCREENSHOT"])
+    _abort(tab, qapp, qtbot)

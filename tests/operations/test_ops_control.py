@@ -11,6 +11,7 @@ from rigctl.core.drum import MAX_FORCE_G, MAX_SPEED_MM_S, DrumLimits, DrumState,
 from rigctl.core.faults import parse_fault
 from rigctl.devices.wire import HoldingRegister
 from rigctl.operations import Home, RigSource, open_control, setpoint_refusals
+from rigctl.operations._control import rig_of
 
 
 @pytest.fixture
@@ -63,7 +64,7 @@ def test_run_at_presses_to_a_settled_force_before_the_drum_turns(control):
 
 
 def test_setpoints_outside_the_controllers_limits_send_nothing(control):
-    drum = control.drum
+    drum = rig_of(control).drum  # the test sets the controller's own limit (a face cannot)
     drum.set_limits(speed_mm_s=90.0)  # the controller's own limit, below the protocol range
     assert control.limits() == DrumLimits(speed_mm_s=90.0, force_g=1500.0)
     before = drum.read_holding(HoldingRegister.SPEED_SETPOINT_0P1MMS)
@@ -88,9 +89,9 @@ def _fault(control) -> None:
     """Latch a fault on the controller: hold 300 g, then lower its force limit below the measured force
     (FORCE_LIMIT: the actuator backs off at once)."""
     control.press(300.0)
-    control.drum.set_limits(force_g=100.0)
+    rig_of(control).drum.set_limits(force_g=100.0)
     control.drum.wait_state([DrumState.FAULT], timeout_s=5.0)
-    control.drum.set_limits(force_g=1500.0)
+    rig_of(control).drum.set_limits(force_g=1500.0)
 
 
 def test_home_is_refused_while_latched_and_is_the_start_after_the_acknowledgement(control):
@@ -131,3 +132,38 @@ def test_open_with_each_home_policy_moves_nothing(tmp_path):
     with open_control(RigSource("inprocess"), home="unless_faulted", host_config_path=tmp_path / "r.json") as c:
         c.home()  # the start
         assert c.status().state == DrumState.IDLE
+
+
+_MOVES = ("press", "run", "home", "run_at", "set_speed", "set_force", "set_profile", "set_ramp", "clear_fault",
+          "stop_drum", "write_register", "write_holding")
+
+
+def test_under_a_host_only_latch_no_public_attribute_presses_or_turns(control):
+    """Issue 76: with a latch the controller does not know of (a stall the host saw, a latch restored from the
+    queue file: ``keep_latch``), `control.drum.press()` pressed the sensor to ~200 g and `control.drum.run()` turned
+    the drum. Now no public attribute of the control object (nor of its parts) is a drum client that moves: the
+    drum is a read-only view, the commands are the owner's and refused; a refused run_at writes no setpoint; the
+    simulated controller saw not one write while it was held."""
+    from rigctl.acquisition.safety import Latch, LatchedFault
+
+    control.keep_latch(Latch("stall", "the host saw the drum stall"))
+    mega = rig_of(control).backend.engine.controller
+    writes0 = mega.write_requests
+    # every public attribute (bench: the simulated world's own hand, not a face's) and their public attributes
+    reach = {name: getattr(control, name) for name in dir(control) if not name.startswith("_") and name != "bench"}
+    for name in ("drum", "monitor", "taxels"):
+        reach.update({f"{name}.{n}": getattr(reach[name], n) for n in dir(reach[name]) if not n.startswith("_")})
+    for name, part in reach.items():
+        if "." not in name or callable(part):
+            continue
+        movers = [verb for verb in _MOVES if callable(getattr(part, verb, None))]
+        assert not movers, f"control.{name} can {movers}"
+    for verb in _MOVES:
+        assert not callable(getattr(control.drum, verb, None)), f"control.drum.{verb}"
+        assert not callable(getattr(control.monitor, verb, None)), f"control.monitor.{verb}"
+    for call in (lambda: control.press(300.0), lambda: control.run_at(60.0, 300.0), control.home):
+        with pytest.raises(LatchedFault):
+            call()
+    assert mega.write_requests == writes0, "a refused command wrote to the controller"  # run_at's speed setpoint
+    st = control.status()
+    assert st.state == DrumState.NOT_HOMED and abs(st.speed_mm_s) < 0.5 and st.force_g < 5.0

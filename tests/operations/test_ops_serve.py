@@ -114,6 +114,31 @@ def test_queued_paused_resumed_finished_and_a_second_run_waits(served, tmp_path)
     assert "/runs/{run_id}/pause" in client.get("/openapi.json").json()["paths"]
 
 
+def test_stop_pauses_the_served_run_and_one_resume_finishes_it(served, tmp_path):
+    """STOP means one thing on every face (issue 76): the GUI's STOP pauses its run and one Resume goes on; `POST
+    /stop` left the served run `stopped`, and `POST /runs/{id}/resume` only queued it again (waiting for `POST
+    /queue/release`). Now: `POST /stop` pauses it (the trial in progress discarded), a second run stays queued
+    (held), and one `POST /runs/{id}/resume` records the rest and lets the queue go on."""
+    client, q = served
+    a = client.post("/runs", json={"toml": PROTOCOL.format(n=2), "out": "a.h5"}).json()["id"]
+    b = client.post("/runs", json={"toml": PROTOCOL.format(n=1).replace('"serve_test"', '"second"'),
+                                   "out": "b.h5"}).json()["id"]
+    _wait(lambda: client.get(f"/runs/{a}").json()["state"] == "running" and client.get("/status").json()
+          ["current_trial"])
+    stop = client.post("/stop", json={}).json()
+    assert stop["acknowledged"] is True and stop["held"] is True
+    ra = _wait(lambda: (r := client.get(f"/runs/{a}").json())["state"] not in ("running", "pausing") and r)
+    assert ra["state"] == "paused" and "STOP" in ra["cause"], ra
+    time.sleep(0.5)
+    assert client.get(f"/runs/{a}").json()["state"] == "paused" and client.get(f"/runs/{b}").json()["state"] == \
+        "queued"
+    assert client.post(f"/runs/{a}/resume", json={}).json()["state"] == "running"  # the one start
+    ra = _wait(lambda: (r := client.get(f"/runs/{a}").json())["state"] in ("done", "failed", "stopped") and r)
+    assert ra["state"] == "done" and ra["trials_done"] == ra["trials_total"] == 4, ra
+    rb = _wait(lambda: (r := client.get(f"/runs/{b}").json())["state"] in ("done", "failed", "stopped") and r)
+    assert rb["state"] == "done" and client.get("/status").json()["held"] is False
+
+
 def test_a_run_cut_by_a_crash_waits_for_its_session_lock_then_resumes(tmp_path):
     """A killed server's journal helper may still hold the session's writer lock when the server restarts: the
     resumed run waits for it instead of failing."""
@@ -349,8 +374,8 @@ def test_stop_through_the_api_stops_the_drum_within_half_a_second(tmp_path):
               f"{read_s * 1e3:.0f} ms)")
         assert abs(speed_mm_s) < 1.0, f"the drum still turned at {speed_mm_s:.1f} mm/s 5 s after STOP"
         assert stopped_s < 0.5 + read_s, f"the drum took {stopped_s:.2f} s to stop (the longest read {read_s:.2f} s)"
-        run = _wait(lambda: (r := client.get(f"/runs/{rid}").json())["state"] in ("stopped", "failed") and r)
-        assert run["state"] == "stopped" and client.get("/status").json()["held"] is True
+        run = _wait(lambda: (r := client.get(f"/runs/{rid}").json())["state"] in ("paused", "failed") and r)
+        assert run["state"] == "paused" and client.get("/status").json()["held"] is True  # STOP pauses
     finally:
         q.close()
         control.close()
@@ -424,20 +449,23 @@ def test_status_reads_the_monitor_not_the_controller_and_the_feed_carries_rig_ev
     client, q = served
     control = q.control
     callers: list[str] = []
-    read = control.drum.read_status
+    from rigctl.operations._control import rig_of
+
+    drum = rig_of(control).drum  # the client itself: who reads it (a face gets a read-only view of it)
+    read = drum.read_status
 
     def counted():
         callers.append(threading.current_thread().name)
         return read()
 
-    control.drum.read_status = counted
+    drum.read_status = counted
     try:
         for _ in range(10):
             rig = client.get("/status").json()["rig"]
             assert rig["drum"]["state"] is not None and rig["drum_age_s"] >= 0
         assert set(callers) <= {"rig-monitor"}, set(callers)
     finally:
-        control.drum.read_status = read
+        drum.read_status = read
     feed = q.subscribe()
     control.bench.inject_faults([parse_fault("estop@0")])
     seen: list[dict] = []
