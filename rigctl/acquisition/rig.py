@@ -52,6 +52,7 @@ from rigctl.acquisition.safety import (
     SafetyLog,
     latch_for,
     latch_from_faults,
+    unacknowledged_latch,
 )
 from rigctl.core.clocksync import DeviceClockFit
 from rigctl.core.drum import (
@@ -380,10 +381,26 @@ class Rig:
                 raise FaultAtOpen(self.safety.latch)
             return
         self.home_pending = True  # the first start HOMEs and TAREs: opening moves nothing
+        self._keep_logged_latch()  # (a controller in FAULT holds its latch itself: above)
+        if refuse_fault and self.safety.latch is not None:  # kept from the rig's log: refused as a controller's
+            raise FaultAtOpen(self.safety.latch)
         if st.state == DrumState.NOT_HOMED:  # its status shows the state; a warning here read as a fault above a
             # doctor report that passes (issue 38)
             log.info("drum controller is NOT_HOMED (reset cause %s): the first start HOMEs",
                      getattr(st, "reset_cause", "?"))
+
+    def _keep_logged_latch(self) -> None:
+        """A controller that outlives its faces (``hardware``: a real one, or ``rigctl sim``'s over its ports): a
+        latch an earlier face saw and nobody acknowledged (the rig's own log,
+        :func:`rigctl.acquisition.safety.unacknowledged_latch`) is held again, whatever the controller says now
+        (a reset under load leaves it NOT_HOMED, with nothing latched of its own). The simulated kinds start a
+        controller of their own at every open: nothing to keep."""
+        if self.mode != "hardware":
+            return
+        kept = unacknowledged_latch(self.safety_log.rig)
+        if kept is not None:
+            log.warning("the rig's log holds a latch no one acknowledged: %s", kept.describe())
+            self.safety.trip(replace(kept, detail=f"seen by an earlier face, not acknowledged: {kept.detail}"))
 
     def _resolve_by_config(self, st: Any) -> Any:
         """A configuration mismatch, not a hazard: an HX711_RATE latch alone (the controller timed its HX711 at boot,

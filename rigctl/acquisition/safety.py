@@ -293,6 +293,45 @@ def safety_log_path() -> Path:
     return Path(state) / "rigctl" / "safety.jsonl"
 
 
+#: how much of the end of the rig's log :func:`unacknowledged_latch` reads, bytes (memory bounded by this, never by
+#: the file's size)
+LOG_TAIL_BYTES = 1 << 20
+
+
+def unacknowledged_latch(rig: dict[str, Any], path: str | os.PathLike[str] | None = None) -> Latch | None:
+    """The last latch the rig's own log (:func:`safety_log_path`) holds for the controller ``rig`` names (its
+    ``mode`` and ``drum`` port) with no acknowledgement after it, or None. A latch any face saw (a reset under
+    load, a stall, a watchdog) is held for every later face until an operator acknowledges it (issue 76: a reset
+    latch lived in the face that saw it, and the next ``rigctl acquire`` ran without anyone acknowledging it).
+    Reads at most the log's last :data:`LOG_TAIL_BYTES`; a line it cannot read is skipped; no log: None."""
+    log_path = Path(path) if path is not None else safety_log_path()
+    key = (rig.get("mode"), rig.get("drum"))
+    try:
+        with open(log_path, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            f.seek(max(0, size - LOG_TAIL_BYTES))
+            tail = f.read(LOG_TAIL_BYTES)
+    except OSError:
+        return None
+    pending: Latch | None = None
+    for raw in tail.splitlines():
+        try:
+            entry = json.loads(raw)
+            if not isinstance(entry, dict) or not isinstance(entry.get("rig"), dict):
+                continue
+            if (entry["rig"].get("mode"), entry["rig"].get("drum")) != key:
+                continue
+            if entry.get("kind") == "latched":
+                pending = Latch(str(entry["cause"]), str(entry.get("detail", "")), int(entry.get("faults", 0)),
+                                str(entry.get("at_utc", "")), tuple(str(c) for c in entry.get("also", ())))
+            elif entry.get("kind") == "acknowledged":
+                pending = None
+        except (ValueError, KeyError, TypeError):
+            continue
+    return pending
+
+
 class SafetyLog:
     """A listener of a :class:`SafetyLatch` that writes every latch and acknowledgement at once (flushed and synced)
     into the rig's own log, one JSON object a line: ``kind`` ("latched" | "acknowledged" | "resolved": a

@@ -128,3 +128,42 @@ def test_two_faults_at_once_latch_and_are_named_and_logged_both(tmp_path, monkey
     assert [e["kind"] for e in logged] == ["latched", "acknowledged", "latched", "latched"]
     assert set([logged[0]["cause"], *logged[0]["also"]]) == {"estop", "loadcell-timeout"}
     assert logged[2]["cause"] == "loadcell-timeout" and logged[2]["also"] == [] and logged[3]["also"] == ["estop"]
+
+
+def test_a_reset_one_face_saw_is_latched_for_the_next_until_acknowledged(tmp_path, monkeypatch):
+    """Issue 76: a controller reset under load was latched by the face that saw it only; the next `rigctl acquire`
+    on that controller opened and ran without anyone acknowledging it. The latch is the rig's now (its own log):
+    a face that closes without acknowledging leaves it for every later face (held, nothing moves; `acquire` exits 1
+    naming it), until one acknowledges; the face after that opens unlatched."""
+    from rigctl.acquisition.safety import LatchedFault
+    from rigctl.simulation.rig import SimulatedRig
+
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
+    proto = tmp_path / "p.toml"
+    proto.write_text(PROTOCOL)
+    with SimulatedRig(port_dir=tmp_path / "ports") as sim:
+        source = RigSource("hardware", drum_port=sim.drum_port, taxel_port=sim.taxel_port)
+        with open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json") as first:
+            first.press(200.0)
+            sim.mega.reset()  # a reset pulse under load (brown-out, the reset line)
+            _until(lambda: first.status() is not None and first.latch is not None, "the first face's reset latch")
+            assert first.latch.cause == "reset"
+        # the next face: NOT_HOMED, nothing latched in the controller, and still the reset latch
+        with open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json") as second:
+            assert second.latch is not None and second.latch.cause == "reset", second.latch
+            try:
+                second.press(200.0)
+                raise AssertionError("pressed under a latch")
+            except LatchedFault:
+                pass
+        args = ["acquire", str(proto), "--drum-port", sim.drum_port, "--taxel-port", sim.taxel_port, "--plates",
+                "auto", "--out", str(tmp_path / "s.h5"), "--quiet"]
+        act = sim.model.actuator_mm
+        refused = CliRunner().invoke(cli, args)
+        assert refused.exit_code == 1 and "reset" in refused.output, refused.output
+        assert sim.model.actuator_mm == act and not (tmp_path / "s.h5").exists()
+        with open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json") as third:
+            third.acknowledge("reset checked: power and reset line", by="tester")
+        with open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json") as fourth:
+            assert fourth.latch is None
