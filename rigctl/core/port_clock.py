@@ -132,6 +132,35 @@ class ClockFile:
                 self._attached = False
         return self._attached
 
+    def hosts_stopped(self) -> bool:
+        """Whether every face that holds the file now is a stopped process (SIGSTOP, a debugger's stop: state T or t
+        in ``/proc/PID/stat``; the holders from ``/proc/locks``). A stopped face grants nothing and never will until
+        it is continued: the rig must not wait for it (issue 76: a SIGSTOPped ``acquire`` froze ``rigctl sim``'s
+        world for 106 s, so its controller's watchdog could never act). False when no holder is found or ``/proc``
+        cannot say (a starved face is running, not stopped)."""
+        if self._fd is None:
+            return False
+        st = os.fstat(self._fd)
+        dev = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+        try:
+            with open("/proc/locks", encoding="ascii", errors="replace") as f:
+                pids = {int(parts[4]) for line in f if len(parts := line.split()) > 5 and parts[5] == dev
+                        and parts[1] == "FLOCK" and parts[4].isdigit()}
+        except OSError:
+            return False
+        pids.discard(os.getpid())
+        if not pids:
+            return False
+        for pid in pids:
+            try:
+                with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as f:
+                    state = f.read().rsplit(")", 1)[1].split()[0]
+            except (OSError, IndexError):
+                return False
+            if state not in ("T", "t"):
+                return False
+        return True
+
     def close(self) -> None:
         """Unmap and remove the file (idempotent)."""
         if self._map is not None:

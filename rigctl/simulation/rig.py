@@ -25,6 +25,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
+import time
 from collections.abc import Sequence
 from functools import partial
 
@@ -58,6 +59,9 @@ STREAM_TICK_S = 0.005
 IDLE_TICK_S = 0.010
 #: the longest physics step between two rows of the truth log (``--truth-log``), ms: >= 100 rows a second
 TRUTH_STEP_MS = 10
+#: how often the rig looks whether the faces holding its clock file are stopped processes, s of wall time (while
+#: their grant holds the world)
+STOPPED_LOOK_S = 0.1
 
 
 class SimulatedRig:
@@ -114,6 +118,7 @@ class SimulatedRig:
         try:
             # a face of another process on these ports shares the rig's time through this file (its grants)
             self._clock_file = ClockFile(self.port_dir)
+            self._stopped_looked_at, self._stopped = -1.0, False
             try:
                 self._build(source, uno_reset_delay_s)
                 # the world's time from the start: a face that attaches before the first step grants from there (on
@@ -279,8 +284,23 @@ class SimulatedRig:
             mega = self.mega
             self._clock_file.publish_in_flight(mega.request_on_its_way() or mega.reply_on_its_way(),
                                                self.uno.output_on_its_way())
-            return min(own, self._clock_file.grant_s())
+            grant = self._clock_file.grant_s()
+            if grant < own and grant <= self.model.time_s and self._faces_stopped():
+                return own  # a stopped face holds nothing: the rig keeps a real controller's time (its watchdog)
+            return min(own, grant)
         return own
+
+    def _faces_stopped(self) -> bool:
+        """Whether the faces that hold the rig's clock file are all stopped processes
+        (:meth:`rigctl.core.port_clock.ClockFile.hosts_stopped`), looked at most every :data:`STOPPED_LOOK_S` of
+        wall time. A starved face still holds the world (its grant comes when it gets the CPU); a stopped one never
+        grants until it is continued, and the world does not wait for it: WATCHDOG_MS of the rig's time later its
+        controller's watchdog stops the rig, as a real controller's does while its host is frozen."""
+        now = time.monotonic()
+        if now - self._stopped_looked_at >= STOPPED_LOOK_S:
+            self._stopped_looked_at = now
+            self._stopped = self._clock_file.hosts_stopped()
+        return self._stopped
 
     def _step(self, n_ms: int) -> None:
         if self.schedule is not None:
