@@ -13,6 +13,8 @@ cd "$(dirname "$0")/.."
 DEBIAN_PACKAGES=(
   # AVR toolchain, Arduino core and the AVR simulator (firmware build and hardware-in-the-loop tests)
   gcc-avr avr-libc binutils-avr arduino-core-avr simavr libsimavr-dev libsimavrparts1 libelf-dev pkg-config make g++
+  # the host C compiler that builds the drum controller's controller.c for the model rig (rigctl.simulation.mega_c)
+  gcc
   # independent Modbus master for tests
   mbpoll
   # virtual screen and the libraries Qt needs to run offscreen / under Xvfb
@@ -36,7 +38,8 @@ t0, i0 = snap(); time.sleep(1.0); t1, i1 = snap()
 print(int(round((1 - (i1 - i0) / max(t1 - t0, 1)) * (os.cpu_count() or 1))))' 2>/dev/null || echo 0)"
 
 # everything the checks make goes to a scratch folder outside the checkout, removed at the end: the firmware build
-# (rigctl.firmware honours $RIGCTL_FIRMWARE_BUILD; the firmware tests use this build), import-linter's cache,
+# (rigctl.firmware honours $RIGCTL_FIRMWARE_BUILD; the firmware tests use this build), the drum controller's C logic
+# built for the host (rigctl.simulation.mega_c honours $RIGCTL_HOST_BUILD; the model rig loads it), import-linter's cache,
 # Hypothesis' example database, numba's compiled kernels, Python's byte code, pytest's cache, the apt log
 TEST_TMP="$(mktemp -d "${TMPDIR:-/tmp}/rigctl-test.XXXXXX")"
 trap 'rm -rf "$TEST_TMP"' EXIT
@@ -107,7 +110,7 @@ if ! { { python3 -m uv --version >/dev/null 2>&1 || python3 -m pip install -q --
   python3 -m pip install -q --disable-pip-version-check -e ".[test]"
 fi
 
-export RIGCTL_FIRMWARE_BUILD="$TEST_TMP/firmware" HYPOTHESIS_STORAGE_DIRECTORY="$TEST_TMP/hypothesis" \
+export RIGCTL_FIRMWARE_BUILD="$TEST_TMP/firmware" RIGCTL_HOST_BUILD="$TEST_TMP/host" HYPOTHESIS_STORAGE_DIRECTORY="$TEST_TMP/hypothesis" \
   NUMBA_CACHE_DIR="$TEST_TMP/numba"
 
 # byte code, in a tree of its own under the scratch folder (PYTHONPYCACHEPREFIX), never beside the sources in the
@@ -185,6 +188,11 @@ phase "build firmware (into $RIGCTL_FIRMWARE_BUILD)"
 # as the tests build it (rigctl.firmware.build: the sources' BUILD_ID, under the build folder's lock): a plain make
 # leaves the id out, and the first test's build would then relink the images while other workers read them
 python3 -c 'from rigctl import firmware; firmware.build()'
+
+# the drum controller's controller.c for the host (the model rig's controller: rigctl.simulation.mega_c), once, before
+# the workers start: each would otherwise wait under the build folder's lock for the first one's build
+phase "build the drum controller's C logic for the host (into $RIGCTL_HOST_BUILD)"
+python3 -c 'from rigctl.simulation import mega_c; mega_c.build()'
 
 phase "numba kernels and byte code (waiting for scripts/compile_kernels.py and the collection)"
 for pid in "${kernel_pids[@]}"; do

@@ -437,7 +437,7 @@ def _hardware(args, *, drum_port=None, timeout=180):
     with SimulatedRig(seed=1) as sim:
         # the simulated rig's own watchdog (5 s), not the hardware's 1 s: these tests judge the command line, and a
         # host process starved for 1 s on a saturated test machine latched WATCHDOG in every CI run
-        sim.mega.holding[HoldingRegister.WATCHDOG_MS] = WATCHDOG_MS["sim"]
+        sim.mega.set_holding_register(HoldingRegister.WATCHDOG_MS, WATCHDOG_MS["sim"])
         return subprocess.run([*RIGCTL, "acquire", *map(str, args), "--quiet", "--drum-port", drum_port or sim.drum_port,
                                "--taxel-port", sim.taxel_port], capture_output=True, text=True, timeout=timeout,
                               stdin=subprocess.DEVNULL)

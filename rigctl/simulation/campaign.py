@@ -185,7 +185,7 @@ class ModelTruth:
 
     Parameters
     ----------
-    engine : the engine (``engine.model``, ``engine.controller``); its controller's ``control_step`` is wrapped.
+    engine : the engine (``engine.model``, ``engine.controller``); its controller's ``control_period`` is wrapped.
     """
 
     def __init__(self, engine: Any) -> None:
@@ -195,10 +195,10 @@ class ModelTruth:
         #: each time the controller was in FAULT: [start_s, end_s or None]
         self.latches: list[list[float | None]] = []
         controller, model = engine.controller, engine.model
-        step: Callable[[int], None] = controller.control_step
+        step: Callable[[int], None] = controller.control_period
         fault_state = int(wire.DrumState.FAULT)
 
-        def control_step(n_ms: int) -> None:
+        def control_period(n_ms: int) -> None:
             step(n_ms)
             t = model.time_s - self.t0_s
             self.rows.append((t, model.contact_force_g, model.actuator_mm, model.drum_speed_mm_s))
@@ -208,7 +208,7 @@ class ModelTruth:
             elif not faulted and self.latches and self.latches[-1][1] is None:
                 self.latches[-1][1] = t
 
-        controller.control_step = control_step
+        controller.control_period = control_period
 
     @property
     def latch_spans(self) -> list[tuple[float, float | None]]:

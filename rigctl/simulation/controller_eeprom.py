@@ -1,12 +1,13 @@
-"""The virtual drum controller's emulated EEPROM (the firmware's calibration record with its CRC, firmware 1.2's with the
-tare's raw zero, docs/wire-protocol.md 2.11; the boot counter), in memory or a JSON file: :class:`EmulatedEeprom`, a
-part of :class:`rigctl.simulation.controller.MegaController`."""
+"""The model rig's drum controller's EEPROM (:class:`EmulatedEeprom`): what ``mega_drum.cpp``'s ``calib_load`` /
+``calib_save`` and its boot counter keep in the Mega's EEPROM (the calibration record with its CRC, firmware 1.2's
+with the tare's raw zero, docs/wire-protocol.md 2.7 and 2.11), in memory or a JSON file. Glue of
+:class:`rigctl.simulation.controller.MegaController`: the controller's rules are controller.c's."""
 
 from __future__ import annotations
 
 import json
-import threading
 from pathlib import Path
+from typing import Any
 
 from rigctl.devices import wire
 from rigctl.devices.wire import HoldingRegister as HR
@@ -18,20 +19,22 @@ _DEFAULT_SCALE_X100 = wire.join_s32(wire.HOLDING_RANGE[HR.LOADCELL_SCALE_X100_HI
 
 
 class EmulatedEeprom:
-    """The calibration record and the boot counter; the state they use is :class:`MegaController`'s."""
+    """The calibration record and the boot counter.
 
-    eeprom: dict
-    eeprom_path: Path | None
-    holding: dict[int, int]
-    tared: bool
-    calibration_defaults: bool
-    _tare_raw: int
-    _zero_raw: int | None
-    _lock: threading.RLock
+    Parameters
+    ----------
+    path : JSON file holding them (read now, written at every change), or None: in memory.
 
-    @property
-    def scale_x100(self) -> int:  # (MegaController's)
-        raise NotImplementedError
+    Attributes
+    ----------
+    data : ``{"calibration": record or None (erased), "boot_count": cold boots (0xFFFF erased)}``; a record is
+        ``{"scale_x100", "actuator_steps_per_mm", "zero_raw" (optional), "crc"}``.
+    """
+
+    def __init__(self, path: str | Path | None = None) -> None:
+        self.path = Path(path) if path else None
+        self.data: dict[str, Any] = {"calibration": None, "boot_count": 0xFFFF}
+        self._read_file()
 
     @staticmethod
     def _record_crc(rec: dict) -> int:
@@ -40,8 +43,9 @@ class EmulatedEeprom:
                           + int(rec["actuator_steps_per_mm"]).to_bytes(2, "little")
                           + (b"" if zero is None else int(zero).to_bytes(4, "little", signed=True)))
 
-    def _valid_calibration(self) -> dict | None:
-        rec = self.eeprom["calibration"]
+    def valid_calibration(self) -> dict | None:
+        """The stored record if its CRC holds and its values are usable (``calib_load``), else None."""
+        rec = self.data["calibration"]
         if not isinstance(rec, dict):
             return None
         try:
@@ -50,44 +54,48 @@ class EmulatedEeprom:
             return None
         return rec if ok else None
 
-    def _read_eeprom_file(self) -> None:
-        if not (self.eeprom_path and self.eeprom_path.exists()):
+    def _read_file(self) -> None:
+        if not (self.path and self.path.exists()):
             return
         try:
-            data = json.loads(self.eeprom_path.read_text())
+            data = json.loads(self.path.read_text())
         except (OSError, ValueError):
             return  # unreadable: an erased EEPROM
         if "calibration" in data:
-            self.eeprom["calibration"] = data["calibration"]
+            self.data["calibration"] = data["calibration"]
         elif HR.LOADCELL_SCALE_X100.name in data:  # firmware 1.0's record (no checksum in the file)
             rec = {"scale_x100": int(data[HR.LOADCELL_SCALE_X100.name]),
                    "actuator_steps_per_mm": int(data.get(HR.ACTUATOR_STEPS_PER_MM.name, 400))}
             rec["crc"] = self._record_crc(rec)
-            self.eeprom["calibration"] = rec
-        self.eeprom["boot_count"] = int(data.get("boot_count", 0xFFFF)) & 0xFFFF
+            self.data["calibration"] = rec
+        self.data["boot_count"] = int(data.get("boot_count", 0xFFFF)) & 0xFFFF
 
-    def _write_eeprom_file(self) -> None:
-        if self.eeprom_path:
-            self.eeprom_path.write_text(json.dumps(self.eeprom))
+    def _write_file(self) -> None:
+        if self.path:
+            self.path.write_text(json.dumps(self.data))
 
-    def _save_eeprom(self) -> None:
-        zero = self._tare_raw if self.tared else self._zero_raw  # the tare in force (spec 2.11)
-        rec = {"scale_x100": self.scale_x100, "actuator_steps_per_mm": self.holding[HR.ACTUATOR_STEPS_PER_MM]}
-        if zero is not None:
-            rec["zero_raw"] = int(zero)
-            self._zero_raw = int(zero)
+    @property
+    def boot_count(self) -> int:
+        """Cold boots counted (0xFFFF: erased)."""
+        return int(self.data["boot_count"])
+
+    def count_cold_boot(self) -> None:
+        """A cold boot (power-on, brown-out): the counter + 1, written."""
+        self.data["boot_count"] = (self.data["boot_count"] + 1) & 0xFFFF
+        self._write_file()
+
+    def save(self, scale_x100: int, actuator_steps_per_mm: int, zero_raw: int | None) -> None:
+        """``calib_save``: the record of these values (``zero_raw`` None: none known), with its CRC."""
+        rec: dict[str, int] = {"scale_x100": int(scale_x100), "actuator_steps_per_mm": int(actuator_steps_per_mm)}
+        if zero_raw is not None:
+            rec["zero_raw"] = int(zero_raw)
         rec["crc"] = self._record_crc(rec)
-        self.eeprom["calibration"] = rec
-        self.calibration_defaults = False
-        self._write_eeprom_file()
+        self.data["calibration"] = rec
+        self._write_file()
 
-    def corrupt_eeprom(self) -> None:
-        """Fault-injection hook: flip a bit of the stored calibration (its checksum fails at the next boot)."""
-        with self._lock:
-            rec = self._valid_calibration() or {"scale_x100": _DEFAULT_SCALE_X100,
-                                                "actuator_steps_per_mm": self.holding[HR.ACTUATOR_STEPS_PER_MM],
-                                                "crc": 0}
-            rec = dict(rec, scale_x100=rec["scale_x100"] ^ 0x10)
-            self.eeprom["calibration"] = rec
-            self._write_eeprom_file()
-
+    def corrupt(self, actuator_steps_per_mm: int) -> None:
+        """Fault injection: flip a bit of the stored calibration (its checksum fails at the next boot)."""
+        rec = self.valid_calibration() or {"scale_x100": _DEFAULT_SCALE_X100,
+                                           "actuator_steps_per_mm": actuator_steps_per_mm, "crc": 0}
+        self.data["calibration"] = dict(rec, scale_x100=rec["scale_x100"] ^ 0x10)
+        self._write_file()

@@ -1,7 +1,7 @@
 """The in-process backend: the simulated rig without ptys, threads or real-time pacing, for fast unit tests.
 
-The drum controller is the firmware logic of :class:`rigctl.simulation.controller.MegaController` (the same class
-the virtual Mega serves on a pty) driving :class:`rigctl.simulation.model.RigModel`; the host talks to it through
+The drum controller is the firmware's own controller.c in :class:`rigctl.simulation.controller.MegaController` (the
+same class the virtual Mega serves on a pty) driving :class:`rigctl.simulation.model.RigModel`; the host talks to it through
 the ordinary :class:`rigctl.devices.drum.DrumClient` (every range check and wait of the real client) whose Modbus
 transport calls the controller directly. The taxel source (:class:`InProcessTaxels`) frames the model's samples
 as the Uno would (sequence numbers, SYNC_IN at the drum's index pulse, STREAMING_START on the first frame).
@@ -12,8 +12,8 @@ clock, and :meth:`InProcessTaxels.wait_capture` runs the simulation until the fr
 in simulated time). A whole trial takes a fraction of its duration in wall time; the results (force settling,
 index alignment, trial frames) are the model's, not a mock's. The host-silence watchdog is simulated only while a
 ``host-silence`` fault is injected (the host cannot be silent on a clock that only moves when it speaks): then each
-request waits :data:`SILENT_ANSWER_MS` of simulated time for no answer, and WATCHDOG latches once the silence is
-longer than WATCHDOG_MS.
+request waits :data:`SILENT_ANSWER_MS` of simulated time for no answer, and controller.c's watchdog measures the
+silence from the last request it handled (:meth:`MegaController.host_link`).
 
 Faults (``open_rig("inprocess", inject=...)``, :mod:`rigctl.core.faults`) are applied on the simulated clock as it
 passes their times (:class:`rigctl.simulation.faults.ModelFaults`).
@@ -94,10 +94,10 @@ class InProcessEngine:
         self._listeners: list[Callable[[np.ndarray | None, np.ndarray, int], Any]] = []
         self._wanted: list[Callable[[], bool]] = []
         #: the injected faults (:meth:`InProcessBackend.inject_faults`) and what applies them
-        self.faults = ModelFaults(self.controller, self.model, drum_link=lambda up: None, taxel_link=self._taxel_link)
+        self.faults = ModelFaults(self.controller, self.model, drum_link=self.controller.host_link,
+                                  taxel_link=self._taxel_link)
         self.schedule: FaultSchedule | None = None
         self.taxel_link_up = True
-        self._last_request_ms = 0
 
     def _taxel_link(self, up: bool) -> None:
         self.taxel_link_up = bool(up)
@@ -127,8 +127,6 @@ class InProcessEngine:
             samples, sync = self.controller.step(n_ms, render=any(wants() for wants in self._wanted))
             t0 = self._t_ms
             self._t_ms += n_ms
-            if self.faults.host_silent:
-                self.controller.host_silent_for((self._t_ms - self._last_request_ms) / 1000.0)
             for fn in self._listeners:
                 fn(samples, sync, t0)
 
@@ -136,7 +134,6 @@ class InProcessEngine:
         """A request reaches the controller now (False: the host is cut off, ``host-silence``; nothing arrives)."""
         if self.faults.host_silent:
             return False
-        self._last_request_ms = self._t_ms
         self.controller.note_request()
         return True
 

@@ -792,13 +792,6 @@ def _contact_height_kernel(pos, wrap, pitch, period, table, mean, out):  # pragm
 # ----------------------------------------------------------------------------------------------------------------
 # whole rig mechanics
 # ----------------------------------------------------------------------------------------------------------------
-#: The force loop integrates only while ``abs(e) < FORCE_PI_INTEGRATE_BAND_G`` g (conditional integration: no
-#: wind-up during the approach to contact): the firmware's FORCE_INTEGRATE_BAND_G (drum_config.h; equal by
-#: tests/test_wire_spec.py). The loop itself (gains in the holding registers, one update per HX711 reading) is
-#: :meth:`rigctl.simulation.controller.MegaController._force_pi`, the firmware's force_pi.c.
-FORCE_PI_INTEGRATE_BAND_G = 50.0
-
-
 class RigModel:
     """Mechanics of the rig, advanced in 1 ms steps by the virtual boards. Thread-safe (one lock).
 

@@ -8,7 +8,8 @@ RAMP speed profiles, a PI force loop on actuator velocity against the load cell,
 watchdog (any valid request to device 1 feeds it), the 10 ms heartbeat, tare, home, clear fault, and the calibration
 registers kept in an emulated EEPROM (in memory, or a JSON file).
 
-The logic is :class:`rigctl.simulation.controller.MegaController` (shared with the in-process backend); the
+The logic is the firmware's controller.c in :class:`rigctl.simulation.controller.MegaController` (shared with the
+in-process backend); the
 Modbus side is pymodbus' own :class:`pymodbus.server.ModbusSerialServer` (RTU framer, device id 1, 500000 8N1)
 on one end of a :class:`rigctl.simulation.pty.PtyBridge`; the client opens :attr:`VirtualMega.path`. The physics is
 :class:`rigctl.simulation.model.RigModel` (drum step rate and actuator velocity in, load cell and drum state out);
@@ -40,7 +41,7 @@ from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 
 from rigctl.core.shared_clock import SharedClock, host_stamp, on_a_kernel_hop, port_keys
 from rigctl.devices import wire
-from rigctl.devices.wire import Fault, HoldingRegister as HR
+from rigctl.devices.wire import HoldingRegister as HR
 from rigctl.simulation.controller import MegaController
 from rigctl.simulation.model import RigModel
 from rigctl.simulation.priority import board_thread
@@ -353,20 +354,24 @@ class VirtualMega(MegaController):
                 log.exception("watchdog check failed")
                 wait_s = WATCHDOG_CHECK_S
 
+    def _watchdog_due(self) -> bool:
+        """The host has been silent for longer than WATCHDOG_MS on the board's clock (whether that is a fault, the rig
+        at rest or not, is controller.c's to say)."""
+        return self._host_heard and self._now() - self._last_request > self.holding_register(HR.WATCHDOG_MS) / 1000.0
+
     def _next_check_s(self) -> float:
         """The wait before the next :meth:`check_watchdog`, s: :data:`WATCHDOG_CHECK_S` from the time the host could
         be overdue (its last request + WATCHDOG_MS) on and while a check waits for its confirmation; until then no
         check can trip, and the loop sleeps up to that time, at most :data:`WATCHDOG_IDLE_CHECK_S` (the shortest
         WATCHDOG_MS: a request that shortens the timeout feeds the watchdog too, so the new deadline is never before
-        the next check). Past due while the watchdog does not guard (the rig at rest), also that long: only a request
-        (RUN, PRESS), which feeds it, makes it guard again. A check costs the server's loop a wake-up; one every
-        10 ms was most of its CPU."""
+        the next check). Once the host is found silent, also that long: only a request makes it heard again. A check
+        costs the server's loop a wake-up; one every 10 ms was most of its CPU."""
         with self._lock:
             if self._overdue_at_requests is not None:
                 return WATCHDOG_CHECK_S
-            left_s = self._last_request + self.holding[HR.WATCHDOG_MS] / 1000.0 - self._now()
-            if left_s <= 0.0 and not self._watchdog_guards():
+            if not self._host_heard:
                 return WATCHDOG_IDLE_CHECK_S
+            left_s = self._last_request + self.holding_register(HR.WATCHDOG_MS) / 1000.0 - self._now()
         return min(WATCHDOG_IDLE_CHECK_S, max(WATCHDOG_CHECK_S, left_s))
 
     def _reply_grace(self) -> bool:
@@ -378,7 +383,8 @@ class VirtualMega(MegaController):
         return self.bridge.client.plugged and self.reply_on_its_way()
 
     def check_watchdog(self) -> bool:
-        """Trip the host-silence watchdog (spec 2.5) if it is due; returns True if it tripped.
+        """Tell the controller the host is silent (:meth:`host_link`; controller.c's watchdog then latches WATCHDOG if
+        it guards the rig, spec 2.5) once the silence is longer than WATCHDOG_MS; returns True if it said so.
 
         Called from the Modbus server's loop (every :data:`WATCHDOG_CHECK_S` once the host may be overdue:
         :meth:`_next_check_s`), so a request the server has read is always handled (and has fed the watchdog) before
@@ -407,5 +413,5 @@ class VirtualMega(MegaController):
                 self._overdue_at_requests = self.requests
                 return False
             self._overdue_at_requests = None
-            self._fault(Fault.WATCHDOG)
+            self.host_link(False)
             return True

@@ -609,13 +609,13 @@ def test_a_reversed_cell_after_a_reset_under_load_is_named_and_its_advice_never_
         eng = rig.backend.engine
         model = eng.model
         peak = [0.0]
-        step = eng.controller.control_step
+        step = eng.controller.control_period
 
-        def control_step(n_ms):  # the true contact force after every control period (the truth log's column)
+        def control_period(n_ms):  # the true contact force after every control period (the truth log's column)
             step(n_ms)
             peak[0] = max(peak[0], model.contact_force_g)
 
-        eng.controller.control_step = control_step
+        eng.controller.control_period = control_period
         rig.press(1000)
         eng.faults.apply_fault(parse_fault("reversed-cell@1"), True)  # swapped and reset in the same instant
         eng.controller.reset(ResetCause.EXTERNAL)
@@ -646,6 +646,9 @@ def test_a_reversed_cell_after_a_reset_under_load_is_named_and_its_advice_never_
         eng.faults.apply_fault(parse_fault("reversed-cell@1"), False)
         if rig.drum.read_status().faults:
             rig.drum.clear_fault()
+        # the back-off from the press is still under way (controller.c: HOME from IDLE only with the cell unloaded, so
+        # a HOME at once is refused; the old Python copy's back-off had ended by then)
+        rig.drum.wait_released(timeout_s=15.0)
         rig.drum.home()
         st = rig.drum.wait_state([DrumState.IDLE], timeout_s=30.0)
         assert st.homed and not int(st.faults), st

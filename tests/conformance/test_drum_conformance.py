@@ -11,8 +11,10 @@ load cell) the test asserts the spec's tolerance, not either's numbers.
 from __future__ import annotations
 
 import math
+import re
 import time
 from contextlib import contextmanager
+from pathlib import Path
 
 import pytest
 import serial
@@ -25,6 +27,7 @@ from rigctl.devices.drum import DrumClient, DrumStatus
 from rigctl.devices.errors import ModbusExceptionError
 from rigctl.devices.wire import Command, DrumState as S, Fault, HoldingRegister as HR, InputRegister as IR
 
+from ..command_table import refused_in, unchanged_in
 from .conftest import QUIET_WATCHDOG_MS, home
 
 ILLEGAL_FUNCTION, ILLEGAL_ADDRESS, ILLEGAL_VALUE = 1, 2, 3
@@ -122,8 +125,11 @@ def holding(drum: DrumClient) -> list[int]:
 
 def bring_to(drum: DrumClient, ctl, state: S) -> DrumStatus:
     """Drive the controller from IDLE into ``state`` with ordinary commands; returns the status in it."""
-    if state == S.IDLE:
-        return poll(drum, lambda s: s.state == S.IDLE, 5, "IDLE")
+    if state == S.IDLE:  # with the command table's guards met: at home, the cell unloaded (a mass just removed by
+        # the previous test's restore reads on for the HX711's 4 periods)
+        tol = DEFAULT[HR.FORCE_TOLERANCE_G]
+        return poll(drum, lambda s: s.state == S.IDLE and s.home_switch and abs(s.force_g) < tol, 5,
+                    "IDLE at home, unloaded")
     if state == S.HOMING:
         # the actuator must be away from home for HOMING to last; HOME needs no load on the cell (< 2 x
         # FORCE_TOLERANCE_G): a wide tolerance lets it follow a STOP at once, while the actuator is still out
@@ -414,18 +420,12 @@ def test_tare_and_the_load_cell_scale(drum, controller):
     assert drum.read_status().state == S.IDLE
 
 
-# states, the commands refused in each (exception 03, nothing changes), and the state STOP leaves
-REFUSED = {
-    S.IDLE: [Command.STOP_DRUM],  # firmware.md: STOP_DRUM only with the force loop engaged
-    S.HOMING: [Command.RUN, Command.PRESS, Command.STOP_DRUM, Command.TARE, Command.HOME],
-    S.SEEKING_FORCE: [Command.TARE, Command.HOME],  # spec: TARE only when released
-    S.FORCE_SETTLED: [Command.TARE, Command.HOME],
-    S.RUNNING: [Command.TARE, Command.HOME],
-    S.FAULT: [Command.RUN, Command.PRESS, Command.STOP_DRUM, Command.TARE, Command.HOME],  # CLEAR_FAULT to leave
-}
+# the states whose refusals and unchanged commands are checked here, from the spec's command table (the one copy:
+# tests/command_table.py; NOT_HOMED: test_not_homed_refuses_what_the_table_says)
+STATES = [S.IDLE, S.HOMING, S.SEEKING_FORCE, S.FORCE_SETTLED, S.RUNNING, S.FAULT]
 
 
-@pytest.mark.parametrize("state", list(REFUSED), ids=[s.name for s in REFUSED])
+@pytest.mark.parametrize("state", STATES, ids=[s.name for s in STATES])
 def test_each_state_refuses_what_it_must_and_stop_makes_it_safe(drum, controller, state):
     """In every state: the commands not allowed there are refused with exception 03 and change nothing (the
     always-allowed ones are accepted and change nothing either); STOP is always accepted: the drum comes to rest,
@@ -434,7 +434,7 @@ def test_each_state_refuses_what_it_must_and_stop_makes_it_safe(drum, controller
     regs = holding(drum)
     # HOMING ends by itself once the actuator is home
     unchanged = {state, S.IDLE} if state == S.HOMING else {state}
-    for cmd in REFUSED[state]:
+    for cmd in refused_in(state):
         if state == S.HOMING and drum.read_status().actuator_mm < 3.0:
             # HOMING ends by itself (about 1.5 s from 4.5 mm): a slow host starts it again, so that each command
             # reaches a controller that is still HOMING (at least 1 s of travel left)
@@ -445,8 +445,9 @@ def test_each_state_refuses_what_it_must_and_stop_makes_it_safe(drum, controller
             drum.command(cmd)
         st = drum.read_status()
         assert st.state in unchanged, f"{cmd.name} changed {state.name} to {st.state.name}"
-    # accepted in every state, changing nothing: NONE, SAVE_CALIBRATION, CLEAR_FAULT with no fault latched
-    for cmd in [Command.NONE, Command.SAVE_CALIBRATION] + ([Command.CLEAR_FAULT] if state != S.FAULT else []):
+    # accepted, changing nothing (the table's "="): NONE, SAVE_CALIBRATION, CLEAR_FAULT with no fault latched, TARE
+    # at home; STOP is checked below
+    for cmd in [c for c in unchanged_in(state) if c != Command.STOP]:
         drum.command(cmd)
         st = drum.read_status()
         assert st.state in unchanged, f"{cmd.name} changed {state.name} to {st.state.name}"
@@ -464,6 +465,25 @@ def test_each_state_refuses_what_it_must_and_stop_makes_it_safe(drum, controller
     assert (st.state, st.faults) == (S.IDLE, Fault(0))
 
 
+def test_not_homed_refuses_what_the_table_says(drum, controller):
+    """After a reset at home the controller is NOT_HOMED: the commands the spec's command table refuses there are
+    refused with exception 03 and change nothing, those it accepts without a change of state change nothing (STOP
+    included: the actuator's position is unknown, it stays NOT_HOMED)."""
+    controller.reset("external")
+    st = poll(drum, lambda s: s.state == S.NOT_HOMED, 5, "NOT_HOMED after the reset")
+    drum.wait_hx711_rate(timeout_s=10.0)
+    regs = holding(drum)
+    for cmd in refused_in(S.NOT_HOMED):
+        with refused():
+            drum.command(cmd)
+        assert drum.read_status().state == S.NOT_HOMED, cmd.name
+    for cmd in unchanged_in(S.NOT_HOMED):
+        drum.command(cmd)
+        st = drum.read_status()
+        assert st.state == S.NOT_HOMED and not st.homed, (cmd.name, st)
+    assert holding(drum) == regs
+
+
 def test_home_drives_the_actuator_home(drum, controller):
     st = bring_to(drum, controller, S.HOMING)
     assert st.actuator_mm > 0.5
@@ -475,8 +495,8 @@ def test_stop_backs_the_actuator_off_at_the_clamp_speed(drum, controller):
     """STOP after a press: the actuator goes home at ACT_MAX_SPEED_MM_S (drum_config.h, 5 mm/s; the firmware's
     ACT_MODE_RETRACT), measured on the mechanics against the controller's own clock (the virtual Mega drove it at the
     model's 8 mm/s mechanical limit). On the mechanics' own clock (the model's, the harness's)."""
-    from rigctl.simulation.controller import FORCE_LOOP_MAX_SPEED_MM_S
-
+    cfg = (Path(__file__).resolve().parents[2] / "rigctl" / "arduino" / "mega_drum" / "drum_config.h").read_text()
+    clamp_mm_s = float(re.search(r"#define ACT_MAX_SPEED_MM_S\s+([\d.]+)f?", cfg).group(1))
     drum.set_force(1000)
     drum.press()
     poll(drum, lambda s: s.actuator_mm > 3.5, 10, "the actuator pressing")
@@ -493,7 +513,7 @@ def test_stop_backs_the_actuator_off_at_the_clamp_speed(drum, controller):
     mid = [(t, mm) for t, mm in track if 0.3 < mm < start_mm - 0.3]
     assert len(mid) >= 3, track
     (t0, x0), (t1, x1) = mid[0], mid[-1]
-    assert (x0 - x1) / (t1 - t0) == pytest.approx(FORCE_LOOP_MAX_SPEED_MM_S, rel=0.1), track
+    assert (x0 - x1) / (t1 - t0) == pytest.approx(clamp_mm_s, rel=0.1), track
 
 
 def test_clear_fault_outside_fault_and_none_change_nothing(drum):

@@ -478,5 +478,5 @@ def test_closing_the_window_mid_run_asks_then_stops_safely(window, qapp, qtbot, 
     assert window.handle is None and not tab.running
     # the rig was stopped safely before it closed: drum target 0, force loop released
     assert mega.state not in (DrumState.RUNNING, DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED)
-    assert mega._speed_target == 0
+    assert mega.speed_target_mm_s == 0
 

@@ -362,8 +362,8 @@ def test_a_starved_clock_keeps_the_actuator_count_on_the_true_position():
         assert model.actuator_mm > 1.0  # it pressed
         write(HR.COMMAND, Command.STOP)
         run(3000)
-    assert model.actuator_mm <= 1e-6 and abs(ctl._actuator_position_mm()) <= 1e-3, (model.actuator_mm,
-                                                                                   ctl._actuator_position_mm())
+    assert model.actuator_mm <= 1e-6 and abs(ctl.actuator_position_mm()) <= 1e-3, (model.actuator_mm,
+                                                                                  ctl.actuator_position_mm())
 
 
 def test_the_kernels_plate_coordinate_is_pythons_modulo_bit_for_bit():

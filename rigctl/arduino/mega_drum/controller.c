@@ -367,7 +367,8 @@ static void start_drum(ctl_t *c)
     c->state = RIGCTL_STATE_RUNNING;
 }
 
-/* is command `cmd` allowed now? (the same rules as rigctl.simulation.virtual_mega) */
+/* is command `cmd` allowed now? docs/wire-protocol.md's command table (command-states) says it cell by cell, and
+ * tests/firmware/test_fw_command_table.py walks every (state, command) pair against this function built for the host */
 static uint8_t command_allowed(const ctl_t *c, uint16_t cmd)
 {
     uint8_t s = c->state;
