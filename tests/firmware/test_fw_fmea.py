@@ -38,15 +38,16 @@ def test_a_power_on_fault_is_armed_before_the_rig_starts_without_waiting(tmp_pat
     failed); the harness applies the FAULT@0 at its time 0 and the Mega boots wired so."""
     rig = hil.HilRig(RigConfig(mechanics=MechanicsConfig(contact_gap_mm=1.0)), live=False, with_uno=False)
     t = time.monotonic()
-    schedule = rig.inject_faults([parse_fault("reversed-cell@0"), parse_fault("estop@2")], power_on=True)
+    schedule = rig.inject_faults([parse_fault("reversed-cell@0"), parse_fault("estop@8")], power_on=True)
     assert time.monotonic() - t < 0.5 and not schedule.armed
     try:
         rig.start()
         assert schedule.armed and [(a, s.name) for a, s, _ in schedule.applied] == [(0.0, "reversed-cell")]
         drum = DrumClient(rig.drum_port, timeout_s=drum_answer_timeout_s("hil"), clock=rig.clock).open()
         try:
-            assert drum.wait_hx711_rate(timeout_s=10).state == State.NOT_HOMED
-            end = rig.next_telemetry().t_s + 2.5  # the e-stop at 2 s of the Mega's clock, from its time 0
+            st = drum.wait_hx711_rate(timeout_s=10)
+            assert st.state == State.NOT_HOMED and rig.next_telemetry().t_s < 8.0, st
+            end = 8.5  # the e-stop at 8 s of the Mega's clock, from its time 0
             while rig.next_telemetry().t_s < end:
                 drum.read_status()
             assert Fault.ESTOP in drum.read_status().faults
