@@ -42,6 +42,7 @@ from rigctl.operations._run import ProtocolRun
 from rigctl.storage.journal import WriterLock, WriterLockHeld
 from rigctl.storage.outputs import OutputError, OutputLocked, check_output, place_in_folder
 from rigctl.storage.session import SessionLocked
+from rigctl.storage.sidecars import write_small_file
 
 __all__ = ["QueueError", "QueuedRun", "RunQueue", "RUN_QUEUE_STATES", "lock_queue_file", "read_queue_file"]
 
@@ -267,14 +268,9 @@ class RunQueue:
     def _save(self) -> None:
         self._prune()
         self._saved_t = time.monotonic()
-        tmp = self.path.with_name(self.path.name + ".tmp")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         doc = {"format": QUEUE_FORMAT, "runs": [r.to_dict() for r in self.runs.values()]}
-        with open(tmp, "w") as f:
-            json.dump(doc, f, indent=1)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, self.path)
+        write_small_file(self.path, json.dumps(doc, indent=1).encode())  # a sidecar of a random name, renamed
 
     # ----------------------------------------------------------------------------------------------- events
     def subscribe(self) -> "queue.Queue[dict[str, Any] | None]":

@@ -435,20 +435,10 @@ def write_session(out: str | os.PathLike[str], plan: Sequence[Mapping[str, Any]]
         raise SessionWriteError(f"{text}; the partial output was removed (an import is written whole or not at "
                                 "all): free space and run the import again", exc.errno, []) from None
     finally:
-        writer.close()
-        if not done:  # a full disk, Ctrl-C, a file refused mid-way: no partial or empty session left behind
-            _remove_partial(Path(out))
-
-
-def _remove_partial(path: Path) -> None:
-    """Remove an import's unfinished output and its writer's side files (the lock, a journal)."""
-    import contextlib
-
-    from rigctl.storage import journal
-
-    for p in (path, journal.journal_path(path), journal.lock_path(path)):
-        with contextlib.suppress(OSError):
-            p.unlink()
+        if done:
+            writer.close()
+        else:  # a full disk, Ctrl-C, a file refused mid-way: the file this import made is removed (only it: an
+            writer.discard()  # --overwrite's old session stays, rigctl.storage.sidecars)
 
 
 @dataclass(frozen=True)

@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from rigctl.storage import journal
+from rigctl.storage.sidecars import OutputError, Sidecar
 
 __all__ = ["HDF5_SUFFIXES", "OutputError", "OutputLocked", "OutputWriteError", "GuardedFile", "OutputTarget", "check_output",
            "check_replaceable", "check_space", "check_writable_folder", "current_umask", "apply_umask",
@@ -73,15 +74,6 @@ HDF5_SUFFIXES = (".h5", ".hdf5")
 
 #: overlay page of :class:`GuardedFile` once the disk has refused a write, bytes
 _PAGE = 1 << 16
-
-
-class OutputError(ValueError):
-    """An output refused before any work (exists, is an input, unknown format, no folder, no space): a usage
-    error, shown as one line. ``option`` is the option that named the output."""
-
-    def __init__(self, message: str, option: str = "--out") -> None:
-        super().__init__(message)
-        self.option = option
 
 
 class OutputLocked(OutputError):
@@ -454,12 +446,14 @@ class GuardedFile(io.RawIOBase):
     0666 minus the umask.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, what: str | None = None) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, what: str | None = None, fd: int | None = None) -> None:
         super().__init__()
         self.path = Path(path)
         self.what = what or str(self.path)
-        self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_TRUNC | getattr(os, "O_BINARY", 0)
-                           | getattr(os, "O_CLOEXEC", 0), 0o666)
+        # ``fd``: the empty file a Sidecar created (never a file opened by name; the guard closes its own copy)
+        self._fd = os.dup(fd) if fd is not None else os.open(
+            self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_BINARY", 0)
+            | getattr(os, "O_CLOEXEC", 0), 0o666)
         self._pos = 0
         self._size = 0
         self._disk_size = 0  # bytes from 0 that are on disk (as written; beyond: zeros or the overlay)
@@ -592,17 +586,24 @@ def _write_error(exc: OSError, what: str) -> OutputWriteError:
 
 
 class OutputTarget:
-    """What :func:`output_file` yields: ``part`` (write here), ``path`` (the final name); :meth:`h5_file` opens
-    the part file for h5py through a :class:`GuardedFile`, :meth:`check` raises a refused write."""
+    """What :func:`output_file` yields: ``part`` (the part file's name, created empty by this process:
+    :class:`rigctl.storage.sidecars.Sidecar`), ``path`` (the final name); :meth:`h5_file` gives the part file to
+    h5py through a :class:`GuardedFile`, :meth:`adopt` takes a file made beside it as the part file, :meth:`check`
+    raises a refused write."""
 
-    def __init__(self, path: Path, part: Path) -> None:
-        self.path, self.part = path, part
+    def __init__(self, path: Path, sidecar: Sidecar) -> None:
+        self.path, self.sidecar = path, sidecar
+        self.part = sidecar.path
         self.guard: GuardedFile | None = None
 
     def h5_file(self) -> GuardedFile:
         """The part file as a :class:`GuardedFile` (created, empty) for ``h5py.File(target.h5_file(), "w")``."""
-        self.guard = GuardedFile(self.part, what=str(self.path))
+        self.guard = GuardedFile(self.part, what=str(self.path), fd=self.sidecar.fd)
         return self.guard
+
+    def adopt(self, made: str | os.PathLike[str]) -> None:
+        """Take ``made`` (a file this process made in the output's folder) as the part file (renamed over it)."""
+        self.sidecar.adopt(Path(made).name)
 
     def check(self) -> None:
         if self.guard is not None:
@@ -610,18 +611,24 @@ class OutputTarget:
 
 
 def _finish(target: OutputTarget) -> None:
-    """fsync and rename the part file over the target, mode per the umask."""
+    """fsync and rename the part file over the target (within the folder's descriptor), mode per the umask."""
+    side = target.sidecar
     if target.guard is not None:
         target.guard.sync()
         target.guard.close()
-    elif target.part.exists():
+    try:
+        fd = os.open(side.name, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0),
+                     dir_fd=side.dir_fd)
         try:
-            with open(target.part, "rb+") as fh:
-                os.fsync(fh.fileno())
-        except OSError as exc:
-            raise _write_error(exc, str(target.path)) from None
-    apply_umask(target.part)
-    os.replace(target.part, target.path)
+            if not side.holds(fd):
+                raise OSError(errno.EBUSY, f"{side.path} was replaced while rigctl wrote it")
+            os.fsync(fd)
+            os.fchmod(fd, 0o666 & ~current_umask())
+        finally:
+            os.close(fd)
+    except OSError as exc:
+        raise _write_error(exc, str(target.path)) from None
+    side.commit_to(target.path.name)
 
 
 @contextlib.contextmanager
@@ -645,12 +652,15 @@ def output_file(path: str | os.PathLike[str], *, overwrite: bool = False, part_s
         raise OutputLocked(f"{option} {p}: {exc}", option) from None
     except OSError as exc:
         raise _write_error(exc, str(p)) from None
-    part = p.with_name(p.name + part_suffix)
-    target = OutputTarget(p, part)
+    target: OutputTarget | None = None
     try:
         if p.exists() and not overwrite:
             raise FileExistsError(f"{p} exists (pass overwrite=True / --overwrite to replace it)")
         check_replaceable(p, kind=kind, option=option)
+        try:  # the part file: created new (O_EXCL | O_NOFOLLOW in the folder's descriptor), a user's never touched
+            target = OutputTarget(p, Sidecar(p.with_name(p.name + part_suffix), what="part file", option=option))
+        except OSError as exc:
+            raise _write_error(exc, str(p)) from None
         try:
             yield target
             target.check()
@@ -662,10 +672,10 @@ def output_file(path: str | os.PathLike[str], *, overwrite: bool = False, part_s
                 raise _write_error(exc, str(p)) from None
             raise
     finally:
-        if target.guard is not None:
-            target.guard.close()
-        with contextlib.suppress(OSError):
-            part.unlink()
+        if target is not None:
+            if target.guard is not None:
+                target.guard.close()
+            target.sidecar.discard()  # removed only if it is still the file this process made
         lock.release()
 
 
@@ -682,7 +692,7 @@ def replacing(path: str | os.PathLike[str], *, overwrite: bool = True, kind: str
     try:
         with output_file(p, overwrite=overwrite, kind=kind, option=option) as target:
             yield Path(tmp)
-            os.replace(tmp, target.part)
+            target.adopt(tmp)
     finally:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
