@@ -111,14 +111,17 @@ class WriterLock:
     locks belong to an open file, not to a process), raises :class:`WriterLockHeld` at once, naming the holder's
     pid. The lock file is a sidecar, not the data file, because HDF5 readers take their own (shared) flock on the
     data file and must keep opening it between the writer's commits. The kernel drops the lock when the holder
-    dies (``kill -9`` included); a lock file left by a killed writer is empty of meaning and is simply locked again
-    by the next writer. :meth:`release` deletes the file (while still holding the lock; a writer that locked the
-    deleted file meanwhile notices and locks the new one).
+    dies (``kill -9`` included). The lock file is a sidecar (:mod:`rigctl.storage.sidecars`): created with
+    ``O_EXCL | O_NOFOLLOW`` in the folder's descriptor; one a killed writer left (a regular file of one link holding
+    a pid, nobody holding it) is removed and made again; a link or any other file at its name is refused
+    (:class:`rigctl.storage.sidecars.SidecarExists`) and left as it is. :meth:`release` deletes the file only if its
+    name still holds the one this lock made (while still holding the lock; a writer that locked the deleted file
+    meanwhile notices and locks the new one).
 
     Raises
     ------
-    WriterLockHeld (a :class:`FileBusy`, an OSError) if another writer holds it; OSError if the lock file cannot be
-    created (a read-only folder, ...).
+    WriterLockHeld (a :class:`FileBusy`, an OSError) if another writer holds it; SidecarExists (a usage error) for a
+    link or a foreign file at ``<name>.lock``; OSError if the lock file cannot be created (a read-only folder, ...).
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:

@@ -128,7 +128,7 @@ class Sidecar:
         """Rename ``name`` (a file this process made in the same folder, e.g. by ``mkstemp``) over the sidecar,
         which must still be ours: the sidecar is that file from now on. OSError; :class:`SidecarExists` if the
         sidecar's name was taken by something else meanwhile."""
-        self._require_ours()
+        self.require_ours()
         st = os.stat(name, dir_fd=self.dir_fd, follow_symlinks=False)
         if not stat.S_ISREG(st.st_mode):
             raise OSError(errno.EINVAL, f"{name} is not a regular file")
@@ -138,7 +138,8 @@ class Sidecar:
             self.fd = None
         self._stat = st
 
-    def _require_ours(self) -> None:
+    def require_ours(self) -> None:
+        """:class:`SidecarExists` unless the name still holds the file this object created."""
         if not self.is_ours():
             raise SidecarExists(f"{self.path} was replaced while rigctl wrote it: nothing was renamed or removed; "
                                 "check who else writes in this folder")
@@ -147,7 +148,7 @@ class Sidecar:
         """Rename the sidecar onto ``target_name`` in the same folder (atomic, ``renameat``), once it is complete;
         the object names the output from then on. :class:`SidecarExists` if the name no longer holds our file
         (nothing is renamed)."""
-        self._require_ours()
+        self.require_ours()
         os.replace(self.name, target_name, src_dir_fd=self.dir_fd, dst_dir_fd=self.dir_fd)
         self.committed = True
         self.name, self.path = target_name, self.path.with_name(target_name)
