@@ -92,7 +92,7 @@ def test_columns_and_a_time_column_resampled_onto_the_rate_grid(tmp_path, monkey
     rc, out = _rigctl("import", "wide.csv", "--rate", 1000, "--texture", "A", "--out", "w.h5", cwd=tmp_path)
     assert rc == 1 and "not whole ADC counts" in out, out  # 44 columns: the aux ones are not counts
     rc, out = _rigctl("import", "wide.csv", "--rate", 1000, "--texture", "A", "--columns", "tx0,tx1,tx2,tx3",
-                      "--time-column", "stamp", "--out", "w.h5", cwd=tmp_path)
+                      "--time-column", "stamp", "--time-unit", "s", "--out", "w.h5", cwd=tmp_path)
     assert rc == 0, out
     assert "time column resampled onto the 1000 Hz grid" in out and "jitter sd" in out, out
     assert "1 gap(s)" in out and "at 1.19" in out, out
