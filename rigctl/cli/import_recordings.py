@@ -68,6 +68,9 @@ def _checked_segment(ctx, param, value):
 @click.option("--scale", type=floats(-1e12, 1e12), default=None, metavar="S",
               help="Readings that are not counts: counts = x * S + O, then rounded (recorded). Without it, "
                    "--offset or --volts-ref, readings that are not whole counts are refused.")
+@click.option("--clip", is_flag=True, default=None,
+              help="Pin values outside the ADC range (volts at or above --volts-ref, a --resample overshoot) to it, "
+                   "counted and printed; without it they are refused.")
 @click.option("--offset", type=floats(-1e12, 1e12), default=None, metavar="O", help="See --scale (default 0).")
 @click.option("--columns", default=None, metavar="A,B,...",
               help="CSV: the channel columns, in channel order (header names or 0-based indices); the other "
@@ -99,7 +102,7 @@ def _checked_segment(ctx, param, value):
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @progress_option
 def import_recordings(files, out, rate_hz, channels, layout, label_pattern, texture, resample_hz, segment_spec,
-                      align, pre_ms, min_swing, mapping, volts_ref, scale, offset, columns, time_column, time_unit,
+                      align, pre_ms, min_swing, mapping, volts_ref, scale, clip, offset, columns, time_column, time_unit,
                       repeated_stamps, variable, nan, adc_bits, preset, skip_bad, overwrite, as_json, progress):
     """Import FILES (format from the extension: .csv, .npy, .npz, .mat, .nwb) into the session file --out.
 
@@ -118,7 +121,7 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
         rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern, texture=texture,
         resample_hz=resample_hz, segment_spec=segment_spec, align=align, pre_ms=pre_ms, min_swing=min_swing,
         mapping=mapping,
-        volts_ref=volts_ref, adc_bits=adc_bits, nan=nan, skip_bad=skip_bad, scale=scale, offset=offset,
+        volts_ref=volts_ref, adc_bits=adc_bits, nan=nan, skip_bad=skip_bad, scale=scale, offset=offset, clip=clip,
         columns=[c.strip() for c in columns.split(",") if c.strip()] if columns else None,
         time_column=time_column, time_unit=time_unit, repeated_stamps=repeated_stamps, variable=variable)
     try:

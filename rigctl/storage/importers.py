@@ -226,25 +226,27 @@ def to_counts(x: np.ndarray, adc_bits: int, *, volts_ref: float | None = None, s
     """Readings -> ADC counts ``0 .. 2**adc_bits - 1`` (uint16).
 
     Volts (``volts_ref`` given): one count is ``volts_ref / 2**adc_bits`` V (the AVR ADC's ``ADC = Vin * 1024 /
-    VREF``, ATmega328P datasheet, "ADC Conversion Result"), ``rint(x / step)``, clipped. Counts:
-    ``rint(x * scale + offset)``;
-    values outside the range raise RecordingImportError unless ``clip`` (after resampling). Returns
-    ``(counts, n_clipped)``.
+    VREF``, ATmega328P datasheet, "ADC Conversion Result"), ``rint(x / step)``. Counts: ``rint(x * scale +
+    offset)``. Values outside the range (volts at or above the reference, a resampling's overshoot, another ADC's
+    counts) raise RecordingImportError naming how many, unless ``clip`` (``--clip``: pinned to the range and
+    counted; clipping loses information, so it is only done when asked for by name). Returns ``(counts, n_clipped)``.
     """
     adc_max = (1 << int(adc_bits)) - 1
     if volts_ref is not None:
         if not volts_ref > 0:
             raise RecordingImportError(f"--volts-ref must be > 0, got {volts_ref}")
         y = np.rint(np.asarray(x, np.float64) / volts_step(float(volts_ref), adc_bits))
-        clip = True
     else:
         y = np.rint(np.asarray(x, np.float64) * float(scale) + float(offset))
     bad = (y < 0) | (y > adc_max)
     n_bad = int(bad.sum())
     if n_bad and not clip:
+        what = f"volts {np.asarray(x).min():g}..{np.asarray(x).max():g} (--volts-ref {volts_ref:g} V)" \
+            if volts_ref is not None else f"values {y.min():g}..{y.max():g}"
         raise RecordingImportError(
-            f"{where}: values {y.min():g}..{y.max():g} are outside the {adc_bits}-bit ADC range 0..{adc_max}: give "
-            "the right --bits, --volts-ref for volts, or scale/offset in the mapping")
+            f"{where}: {what}: {n_bad} of {y.size} values are outside the {adc_bits}-bit ADC range 0..{adc_max}: "
+            "give the right --bits, --volts-ref for volts, or scale/offset in the mapping; or --clip to pin them "
+            "to the range (counted)")
     return np.clip(y, 0, adc_max).astype(np.uint16), n_bad
 
 
@@ -291,7 +293,7 @@ MAX_MAPPING_BYTES = 16 << 20
 #: keys a TOML mapping may hold (module docstring)
 MAPPING_KEYS = ("rate_hz", "channels", "layout", "sensor", "adc_bits", "volts_ref", "scale", "offset",
                 "label_pattern", "resample_hz", "segment", "align", "pre_ms", "min_swing", "nan", "variable", "columns",
-                "time_column", "time_unit", "repeated_stamps", "defaults", "files", "texture_set")
+                "time_column", "time_unit", "repeated_stamps", "clip", "defaults", "files", "texture_set")
 
 
 def _resolve_layout(n_channels: int, rate_hz: float, *, channels: int | None, layout: str | None,
@@ -427,6 +429,8 @@ class ImportOptions:
     time_unit: str | None = None
     #: repeated time stamps: "refuse" or "keep-first" (the rows dropped counted in the import steps)
     repeated_stamps: str = "refuse"
+    #: values outside the ADC range are pinned to it (counted, said) instead of refused
+    clip: bool = False
     per_file: Mapping[str, Any] = field(default_factory=dict)
     defaults: Mapping[str, Any] = field(default_factory=dict)
     texture_set: Mapping[str, Any] | None = None
@@ -463,6 +467,7 @@ class ImportOptions:
                    mapped=scale is not None or offset is not None or pick("volts_ref") is not None,
                    variable=pick("variable"), columns=pick("columns"), time_column=pick("time_column"),
                    time_unit=pick("time_unit"), repeated_stamps=pick("repeated_stamps", "refuse"),
+                   clip=bool(pick("clip", False)),
                    per_file=m.get("files", {}) or {}, defaults=defaults, texture_set=m.get("texture_set"))
 
     def value_scale(self, n_clipped: int) -> dict[str, Any]:
@@ -510,7 +515,7 @@ class _Import:
     n_ch: int | None = None
     n_clipped: int = 0
     sensor_from_file: Mapping[str, Any] | None = None  # an NWB file's own sensor description (rigctl exports it)
-    regridded: bool = False  # a time column put a file onto the rate grid (interpolated values: clipped, counted)
+    regridded: bool = False  # a time column put a file onto the rate grid (linear interpolation: no overshoot)
 
     def add_file(self, path: Path, rx: re.Pattern[str] | None) -> None:
         """Read, label, resample, scale and segment one file; its trials join :attr:`trials`."""
@@ -582,8 +587,11 @@ class _Import:
         elif not math.isclose(self.out_rate, rate, rel_tol=1e-9):
             raise RecordingImportError(f"{path}: {rate:g} Hz, earlier files are {self.out_rate:g} Hz: give --resample")
         counts, clipped = to_counts(x, o.adc_bits, volts_ref=o.volts_ref, scale=o.scale, offset=o.offset,
-                                    clip=bool(o.resample_hz) or self.regridded, where=str(path))
+                                    clip=o.clip, where=str(path))
         self.n_clipped += clipped
+        if clipped:  # asked for by name (--clip), and said
+            self.notes.append(f"{path.name}: {clipped} of {counts.size} values clipped to the {o.adc_bits}-bit range "
+                              f"0..{(1 << o.adc_bits) - 1} (--clip)")
         return counts
 
     def _add_block(self, path: Path, bi: int, n_blocks: int, counts: np.ndarray, labels: dict[str, Any],

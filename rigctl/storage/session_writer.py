@@ -318,20 +318,25 @@ class SessionWriter:
                 plan_arr, layout=layout, textures=textures, protocol_source=protocol_source,
                 protocol_name=protocol_name, protocol_format=protocol_format, rig_config=rig_config, kind=kind,
                 calibration=calibration, attrs=attrs, schema_version=schema_version, compression=compression)
-            aside = os.path.lexists(path)  # --overwrite: the old session stays until the new one's first commit
-            side = _write_new_file(path, image, keep_aside=aside)
-            try:
-                writer = cls(side.path, compression=compression, durable=durable, _lock=lock)
-            except BaseException:
-                side.discard()
-                raise
-            writer._created_file = side
-            if aside:
-                writer._replaces = path
-            return writer
+            # --overwrite: the old session stays until the new one's first commit (kept aside until then)
+            side = _write_new_file(path, image, keep_aside=os.path.lexists(path))
+            return cls._of_new_file(side, path, lock, compression=compression, durable=durable)
         except BaseException:
             lock.release()
             raise
+
+    @classmethod
+    def _of_new_file(cls, side: sidecars.Sidecar, path: Path, lock: journal.WriterLock, **kw: Any) -> "SessionWriter":
+        """The writer of the file :meth:`create` made (``side``); kept aside from ``path`` (an old session there),
+        it replaces that session at its first commit (:meth:`_commit`)."""
+        try:
+            writer = cls(side.path, _lock=lock, **kw)
+        except BaseException:
+            side.discard()
+            raise
+        writer._created_file = side
+        writer._replaces = path if side.path != path else None
+        return writer
 
     @classmethod
     def open(cls, path: str | os.PathLike[str], *, protocol_source: str | None = None,
