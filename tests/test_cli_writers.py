@@ -67,6 +67,9 @@ RUNS = {
                                     "session"),
     (("export", "trials"), "out"): ("", lambda p: ["export", "trials", p["session"], "--layout", "per-trial-csv",
                                                    "--out", p["T"], "--overwrite"], "session"),
+    # the model is read only after the output is checked: a stand-in file is enough for the four refusals
+    (("export", "nir"), "out"): (".nir", lambda p: ["export", "nir", p["model"], "--out", p["T"], "--overwrite"],
+                                 "model"),
     (("export", "nwb"), "out"): (".nwb", lambda p: ["export", "nwb", p["session"], "--out", p["T"], "--overwrite"],
                                  "session"),
     (("gui",), "screenshot"): (".png", lambda p: ["gui", "--replay", p["session"], "--screenshot", p["T"],
@@ -147,6 +150,8 @@ def inputs(tmp_path_factory):
     paths = {"session": _session(d / "input.h5"), "config": d / "rig.json", "csv": d / "rec.csv",
              "protocol": d / "p.toml", "folder": d / "fabricslide"}
     paths["config"].write_text("{}\n")
+    paths["model"] = d / "model.skops"
+    paths["model"].write_bytes(b"a stand-in for a model file: export nir refuses its output before reading it\n")
     paths["csv"].write_text("\n".join(",".join(["500"] * 18) for _ in range(200)) + "\n")
     paths["protocol"].write_text('name = "p"\ntextures = ["A"]\nspeeds_mm_s = [40]\nforces_g = [500]\n'
                                  'trials_per_condition = 1\nduration_s = 0.2\n')
