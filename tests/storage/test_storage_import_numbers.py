@@ -61,7 +61,8 @@ def test_fractional_readings_are_refused_unless_mapped(tmp_path, monkeypatch):
 
 def test_csv_dialects_are_read_or_refused_by_name(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    rows = np.arange(40, dtype=float).reshape(20, 2) + 100
+    # (falling: a whole-number column rising at every row is a counter, never a taxel: issue 77 item 2)
+    rows = np.arange(40, dtype=float)[::-1].reshape(20, 2) + 100
     Path("trailing.csv").write_text("a,b,\n" + "".join(f"{x:g},{y:g},\n" for x, y in rows))
     Path("comma.csv").write_text("a;b\n" + "".join(f"{x:g},5;{y:g},25\n" for x, y in rows))
     Path("ragged.csv").write_text("1,2\n3,4,5\n6,7\n")
