@@ -131,3 +131,27 @@ def test_a_scan_the_validator_would_exclude_is_cued_again(scan_speed_mm_s, refus
             rig.record_trial(planned)
     else:
         assert rig.record_trial(planned).n_samples == pytest.approx(200 / scan_speed_mm_s * 1000, abs=15)
+
+
+def test_a_tracker_in_metres_is_named_with_the_positions_it_sent():
+    """Issue 78 item 5: a tracker in metres without unit metadata timed out with 'no pass of the finger', never
+    naming the positions it saw or the unit; the message now names both (here after a 0.2 s wait of the test)."""
+    from rigctl.core.handheld import wait_for_pass
+
+    class Metres:
+        name, channels = "metres", (0,)
+
+        def since(self, t0):
+            t, x = _path((15, 15, 0.3), (15, 285, 3.0), (285, 15, 1.0))
+            return t + t0, (x / 1000.0)[:, None]
+
+        def describe(self):
+            return {}
+
+        def close(self):
+            pass
+
+    import time
+
+    with pytest.raises(ScanError, match=r"0\.015 to 0\.285 mm .*whole pass in metres; rigctl takes mm"):
+        wait_for_pass(Metres(), lambda x: np.asarray(x)[:, 0], time.monotonic(), timeout_s=0.2, poll_s=0.05)
