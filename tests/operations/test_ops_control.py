@@ -86,8 +86,10 @@ def test_mount_plate_takes_the_sets_spelling(control):
 
 
 def _fault(control) -> None:
-    """Latch a fault on the controller: hold 300 g, then lower its force limit below the measured force
-    (FORCE_LIMIT: the actuator backs off at once)."""
+    """Latch a fault on the controller: hold 300 g, then lower its force limit below the measured force. The
+    controller's second channel sees it first (controller.c: its 1 kHz tick finds the actuator past where the probed
+    contact carries the new limit, POSITION_LIMIT, before the next reading's FORCE_LIMIT; the old Python copy of the
+    rules checked the force first)."""
     control.press(300.0)
     rig_of(control).drum.set_limits(force_g=100.0)
     control.drum.wait_state([DrumState.FAULT], timeout_s=5.0)
@@ -101,7 +103,8 @@ def test_home_is_refused_while_latched_and_is_the_start_after_the_acknowledgemen
     with pytest.raises(LatchedFault):
         control.home()
     st = control.status()
-    assert st.state == DrumState.FAULT and st.faults & Fault.FORCE_LIMIT  # not cleared behind the operator's back
+    # not cleared behind the operator's back
+    assert st.state == DrumState.FAULT and st.faults & (Fault.FORCE_LIMIT | Fault.POSITION_LIMIT), st
     control.clear_fault()
     assert control.status().state != DrumState.HOMING  # the acknowledgement moved nothing
     control.home()  # the start: backs off, HOMEs, TAREs
