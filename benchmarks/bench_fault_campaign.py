@@ -10,19 +10,34 @@ the host (rigctl's own Rig: every check and wait of a real run) runs one script:
 to the first force, the force held, a trial, the release, a pause, a second press (the approach) and a second trial,
 the release. The fault is armed when the script reaches the drawn moment (FAULT@0, before the HOME at open, for
 ``power-on``). Whatever the host meets (a latch, a timeout, a refusal) ends the script as a run ends: the host then
-stays connected, polling, and asks once more to press (a latched rig refuses); nothing acknowledges. A fault the rig
-cannot model (its fault_refusal) is not drawn: the cases draw from the faults it models, counted in ``faults``.
+stays connected, polling, and asks once more to press (a latched rig refuses); nothing acknowledges.
+
+One list of faults on every rig (rigctl.simulation.campaign.CAMPAIGN_FAULTS; ``--faults NAME,...`` narrows it): the
+same seed draws the same case on ``--rig model`` and ``--rig hil``. A fault of the list the rig cannot model is an
+error before any case runs (exit 2), never a redraw. A case that did not run (its rig did not open, or its truth log
+is empty) is ``not_run``: the campaign then exits 1 as for a violation.
+
+The latches judged are the controller's own: on the model rig its state after each control period, under simavr the
+harness's report of the state byte in the MCU's RAM (to 0.1 ms), never the host's poll; the simavr truth rows carry
+the largest force and the furthest actuator position since the row before (no peak lost between rows).
+
+``--as-built`` (the default): the rig as docs/hardware builds it, the actuator driver's current limit set so that
+its motor stalls where the spring carries AS_BUILT_STALL_G (<= 1.1 x FORCE_LIMIT); ``--firmware-only``: no stall,
+the firmware's channels alone.
 
 Under simavr the cores run as fast as the CPU and the host allow (HilRig(paced=False): the rig's one clock,
 rigctl.core.shared_clock), unless ``--paced``.
 
-Usage: python benchmarks/bench_fault_campaign.py --cases N --seed S [--rig model|hil] [--paced] [--json] [--jobs J]
-       python benchmarks/bench_fault_campaign.py --replay SEED [--rig model|hil] [--truth-log FILE]
+Usage: python benchmarks/bench_fault_campaign.py --cases N --seed S [--rig model|hil] [--faults NAME,...] [--paced]
+                                                 [--firmware-only] [--json] [--jobs J]
+       python benchmarks/bench_fault_campaign.py --replay SEED [--rig model|hil] [--faults ...] [--truth-log FILE]
 
-The JSON: ``cases``, ``violations`` (each with its ``seed``: ``--replay SEED`` runs that case again), ``worst_true_
-force_g`` (and ``worst_seed``), ``outcomes`` (how the scripts ended), ``faults`` (cases per fault, with the worst
-true force of each), ``sim_s_per_wall_s`` (simulated seconds per wall second), ``cases_per_minute``, ``cpu_s``.
-Exits 1 if a case broke an invariant.
+The JSON: ``cases``, ``violations`` (each with its ``seed``: ``--replay SEED`` runs that case again), ``not_run``
+(cases that did not run) and ``not_run_cases`` (their seeds and why), ``results`` (one object a case: ``seed``,
+``fault``, ``value``, ``moment``, ``outcome``, ``true_force_max_g``), ``worst_true_force_g`` (and ``worst_seed``),
+``outcomes`` (how the scripts ended), ``faults`` (cases per fault, with the worst true force of each),
+``sim_s_per_wall_s`` (simulated seconds per wall second), ``cases_per_minute``, ``cpu_s``.
+Exits 1 if a case broke an invariant or did not run, 2 for a usage error (a fault the rig cannot model).
 """
 
 from __future__ import annotations
@@ -42,12 +57,20 @@ import numpy as np
 
 from rigctl.acquisition.rig import Rig
 from rigctl.acquisition.rigconfig import update_rig_config
-from rigctl.core.faults import FAULTS, FaultSpec
+from rigctl.core.faults import FAULTS, VALUE_RANGES, WORD_VALUES, FaultSpec
 from rigctl.core.trial import PlannedTrial
 from rigctl.devices import wire
 from rigctl.devices.drum import default_force_loop
 from rigctl.rigs import make_backend, open_rig
-from rigctl.simulation.campaign import COLUMNS, Case, ModelTruth, check_invariants, draw_case, read_truth_log
+from rigctl.simulation.campaign import (
+    CAMPAIGN_FAULTS,
+    COLUMNS,
+    Case,
+    ModelTruth,
+    check_invariants,
+    draw_case,
+    read_truth_log,
+)
 from rigctl.simulation.model import MechanicsConfig, RigConfig
 
 #: each step's expected length, s: the fault starts at the drawn fraction of it after the step begins
@@ -61,19 +84,30 @@ def _probe_s(rate_sps: int) -> float:
     return wire.probe_time_s(rate_sps)
 
 
-def model_faults() -> list[str]:
-    """The faults the model rig models (its fault_refusal says None)."""
-    from rigctl.simulation.faults import model_fault_refusal
-
-    return [n for n in FAULTS if model_fault_refusal(FaultSpec(n, 1.0, math.inf, 1000.0)) is None]
+#: the actuator driver's stall as built (docs/hardware: its current limit), g of spring force: <= 1.1 x FORCE_LIMIT_G
+#: with the motor's tolerance inside it
+AS_BUILT_STALL_G = 1600.0
 
 
-def hil_faults() -> list[str]:
-    """The faults the firmware's harness models."""
-    from rigctl.simulation.hil_faults import HilFaults
+def _probe_spec(name: str) -> FaultSpec:
+    value = next(iter(WORD_VALUES[name].values())) if name in WORD_VALUES else VALUE_RANGES.get(name, (1.0, 1.0))[1]
+    return FaultSpec(name, 1.0, math.inf, value)
 
-    faults = HilFaults(lambda c: None, lambda c: None, 47_000.0)
-    return [n for n in FAULTS if faults.fault_refusal(FaultSpec(n, 1.0, math.inf, 1000.0)) is None]
+
+def refusals(rig: str, faults: list[str]) -> dict[str, str]:
+    """The faults of ``faults`` rig ``rig`` cannot model, each with why (the campaign's rig: the model rig's
+    ModelFaults, the firmware's harness with both boards and its calibration known)."""
+    if rig == "model":
+        from rigctl.simulation.faults import model_fault_refusal
+
+        why = {n: model_fault_refusal(_probe_spec(n)) for n in faults}
+    else:
+        from rigctl.simulation.hil_faults import HilFaults
+
+        harness = HilFaults(lambda c: None, lambda c: None, 47_000.0, calibration_offset=lambda: 0,
+                            calibration_record=lambda x: b"")
+        why = {n: harness.fault_refusal(_probe_spec(n)) for n in faults}
+    return {n: w for n, w in why.items() if w}
 
 
 class Script:
@@ -84,7 +118,6 @@ class Script:
         self.rig, self.case, self.t0 = rig, case, clock_t0
         self.trials: list[tuple[float, float, float]] = []
         self.outcome = "completed"
-        self.latched_seen_s: float | None = None
 
     def now(self) -> float:
         return float(self.rig.drum.clock.now()) - self.t0
@@ -97,9 +130,7 @@ class Script:
         """The host stays connected ``s`` seconds (its status reads feed the controller's watchdog)."""
         clock, end = self.rig.drum.clock, self.rig.drum.clock.now() + s
         while clock.now() < end:
-            st = self.rig.drum.read_status()
-            if st.state == wire.DrumState.FAULT and self.latched_seen_s is None:
-                self.latched_seen_s = self.now()
+            self.rig.drum.read_status()
             clock.sleep(0.05)
 
     def trial(self, i: int, force_g: float) -> None:
@@ -130,12 +161,6 @@ class Script:
             rig.release()
         except Exception as exc:  # noqa: BLE001 - any way a run ends: a latch, a timeout, a refusal
             self.outcome = type(exc).__name__
-            try:
-                st = rig.drum.read_status()
-                if st.state == wire.DrumState.FAULT:
-                    self.latched_seen_s = self.now()
-            except Exception:  # noqa: BLE001 - a link lost: the truth still tells
-                pass
         # after the run: the host stays connected and asks once more to press (a latched rig refuses)
         try:
             self.hold(AFTER_S / 2)
@@ -148,18 +173,19 @@ class Script:
             pass
 
 
-def _rig_files(case: Case, folder: Path) -> tuple[RigConfig, Path]:
+def _rig_files(case: Case, folder: Path, as_built: bool = True) -> tuple[RigConfig, Path]:
     cfg = RigConfig(mechanics=MechanicsConfig(contact_stiffness_g_per_mm=case.stiffness_g_per_mm,
-                                              hx711_rate_sps=float(case.hx711_rate_sps)))
+                                              hx711_rate_sps=float(case.hx711_rate_sps),
+                                              actuator_stall_g=AS_BUILT_STALL_G if as_built else 0.0))
     host = folder / f"rig-{case.seed}.json"
     if case.hx711_rate_sps != 80:  # the lab's rig config for its 10 SPS board
         update_rig_config(host, force_loop=default_force_loop(case.hx711_rate_sps).to_dict())
     return cfg, host
 
 
-def run_model_case(case: Case, folder: Path) -> dict[str, Any]:
+def run_model_case(case: Case, folder: Path, as_built: bool = True) -> dict[str, Any]:
     """One case on the in-process model rig; its result (see :func:`result`)."""
-    cfg, host = _rig_files(case, folder)
+    cfg, host = _rig_files(case, folder, as_built)
     power_on = [case.spec(0.0)] if case.moment == "power-on" else []
     t_wall = time.perf_counter()
     backend = make_backend("inprocess", config=cfg, seed=case.seed)
@@ -169,8 +195,8 @@ def run_model_case(case: Case, folder: Path) -> dict[str, Any]:
     script, open_error = None, None
     try:
         rig = Rig.connect(backend, host_config_path=str(host), refuse_fault=False)
-    except Exception as exc:  # noqa: BLE001 - the rig refused to open (a latch at open): judged on its truth
-        open_error = type(exc).__name__
+    except Exception as exc:  # noqa: BLE001 - the rig did not open: the case did not run
+        open_error = f"{type(exc).__name__}: {exc}"
     else:
         with rig:
             script = Script(rig, case, 0.0)  # the engine's clock is the model's: the truth rows' times
@@ -178,25 +204,29 @@ def run_model_case(case: Case, folder: Path) -> dict[str, Any]:
     return result(case, truth.array(), truth.latch_spans, script, open_error, time.perf_counter() - t_wall)
 
 
-def run_hil_case(case: Case, folder: Path, truth_log: Path | None = None, paced: bool = False) -> dict[str, Any]:
-    """One case on the firmware under simavr (both boards), its truth log written by the harness; the cores run as
-    fast as the CPU and the host allow (the rig's one clock, HilRig(paced=False)) unless ``paced``."""
-    cfg, host = _rig_files(case, folder)
+def run_hil_case(case: Case, folder: Path, truth_log: Path | None = None, paced: bool = False,
+                 as_built: bool = True) -> dict[str, Any]:
+    """One case on the firmware under simavr (both boards), its truth log written by the harness and its latches the
+    controller's own (HilRig.latch_spans: the harness reads the state byte in the MCU's RAM); the cores run as fast as
+    the CPU and the host allow (the rig's one clock, HilRig(paced=False)) unless ``paced``."""
+    cfg, host = _rig_files(case, folder, as_built)
     log = truth_log or folder / f"truth-{case.seed}.csv"
     power_on = [case.spec(0.0)] if case.moment == "power-on" else []
     t_wall = time.perf_counter()
-    script, open_error = None, None
+    script, open_error, latches = None, None, []
     try:
         rig = open_rig("hil", config=cfg, seed=case.seed, host_config_path=host, inject=power_on, truth_log=log,
                        refuse_fault=False, paced=paced)
     except Exception as exc:  # noqa: BLE001
-        open_error = type(exc).__name__
+        open_error = f"{type(exc).__name__}: {exc}"
     else:
         with rig:
-            script = Script(rig, case, float(rig.drum.clock.now()))
+            sim = rig.backend.sim  # type: ignore[attr-defined]
+            t0 = sim.truth.t0_s if sim.truth is not None and sim.truth.t0_s is not None else rig.drum.clock.now()
+            script = Script(rig, case, float(t0))  # the truth log's clock: the trials' spans on it
             script.run()
+            latches = sim.latch_spans
     rows = read_truth_log(log) if log.exists() else np.empty((0, len(COLUMNS)))
-    latches = [(script.latched_seen_s, None)] if script is not None and script.latched_seen_s is not None else []
     return result(case, rows, latches, script, open_error, time.perf_counter() - t_wall)
 
 
@@ -204,34 +234,44 @@ def result(case: Case, truth: np.ndarray, latches: list[tuple[float, float | Non
            wall_s: float) -> dict[str, Any]:
     trials = script.trials if script is not None else []
     violations = check_invariants(truth, latches=latches, trials=trials)
-    return {"seed": case.seed, "case": case.describe(), "fault": case.fault, "moment": case.moment,
-            "outcome": open_error and f"open: {open_error}" or (script.outcome if script else "?"),
+    not_run = None if open_error is None and len(truth) else (f"open: {open_error}" if open_error
+                                                             else "the truth log is empty")
+    return {"seed": case.seed, "case": case.describe(), "fault": case.fault, "value": case.value,
+            "moment": case.moment, "not_run": not_run,
+            "outcome": "not_run" if not_run else (script.outcome if script else "?"),
             "trials_recorded": len(trials), "latches": latches,
             "true_force_max_g": round(float(truth[:, 1].max()), 1) if len(truth) else 0.0,
             "sim_s": round(float(truth[-1, 0] - truth[0, 0]), 3) if len(truth) else 0.0, "wall_s": round(wall_s, 3),
             "violations": [{"kind": v.kind, "time_s": round(v.time_s, 3), "detail": v.detail} for v in violations]}
 
 
-def run_case(seed: int, rig: str, folder: Path, truth_log: Path | None = None, paced: bool = False) -> dict[str, Any]:
-    faults = model_faults() if rig == "model" else hil_faults()
-    case = draw_case(seed, faults)
-    return run_model_case(case, folder) if rig == "model" else run_hil_case(case, folder, truth_log, paced)
+def run_case(seed: int, rig: str, folder: Path, truth_log: Path | None = None, paced: bool = False,
+             faults: list[str] | None = None, as_built: bool = True, draw: str = "v2") -> dict[str, Any]:
+    """The case of ``seed`` (drawn from ``faults``, default CAMPAIGN_FAULTS: the same on every rig; ``draw``: see
+    rigctl.simulation.campaign.draw_case) on ``rig``."""
+    case = draw_case(seed, faults, draw)
+    if rig == "model":
+        return run_model_case(case, folder, as_built)
+    return run_hil_case(case, folder, truth_log, paced, as_built)
 
 
-def _run_chunk(seeds: list[int], rig: str, paced: bool = False) -> list[dict[str, Any]]:
+def _run_chunk(seeds: list[int], rig: str, paced: bool = False, faults: list[str] | None = None,
+               as_built: bool = True) -> list[dict[str, Any]]:
     with tempfile.TemporaryDirectory(prefix="rigctl-campaign-") as tmp:
-        return [run_case(s, rig, Path(tmp), paced=paced) for s in seeds]
+        return [run_case(s, rig, Path(tmp), paced=paced, faults=faults, as_built=as_built) for s in seeds]
 
 
-def campaign(n: int, seed: int, rig: str, jobs: int = 1, paced: bool = False) -> dict[str, Any]:
+def campaign(n: int, seed: int, rig: str, jobs: int = 1, paced: bool = False, faults: list[str] | None = None,
+             as_built: bool = True) -> dict[str, Any]:
     seeds = list(range(seed, seed + n))
     t_wall, cpu0 = time.perf_counter(), os.times()
     if jobs > 1:
         chunks = [seeds[i::jobs] for i in range(jobs)]
         with ProcessPoolExecutor(jobs) as pool:
-            results = [r for part in pool.map(_run_chunk, chunks, [rig] * jobs, [paced] * jobs) for r in part]
+            results = [r for part in pool.map(_run_chunk, chunks, [rig] * jobs, [paced] * jobs, [faults] * jobs,
+                                              [as_built] * jobs) for r in part]
     else:
-        results = _run_chunk(seeds, rig, paced)
+        results = _run_chunk(seeds, rig, paced, faults, as_built)
     wall = time.perf_counter() - t_wall
     cpu1 = os.times()
     results.sort(key=lambda r: r["seed"])
@@ -244,8 +284,13 @@ def campaign(n: int, seed: int, rig: str, jobs: int = 1, paced: bool = False) ->
         f["worst_true_force_g"] = max(f["worst_true_force_g"], r["true_force_max_g"])
         outcomes[r["outcome"]] = outcomes.get(r["outcome"], 0) + 1
     sim = sum(r["sim_s"] for r in results)
+    not_run = [{"seed": r["seed"], "case": r["case"], "why": r["not_run"]} for r in results if r["not_run"]]
     return {"rig": rig, "seed": seed, "cases": len(results), "jobs": jobs, "paced": paced if rig == "hil" else None,
+            "as_built": as_built, "faults_drawn_from": sorted(faults or CAMPAIGN_FAULTS),
             "violations": [{"seed": r["seed"], "case": r["case"], **v} for r in results for v in r["violations"]],
+            "not_run": len(not_run), "not_run_cases": not_run,
+            "results": [{k: r[k] for k in ("seed", "fault", "value", "moment", "outcome", "true_force_max_g")}
+                        for r in results],
             "worst_true_force_g": worst["true_force_max_g"] if worst else 0.0,
             "worst_seed": worst["seed"] if worst else None, "outcomes": outcomes, "faults": per_fault,
             "sim_s": round(sim, 1), "wall_s": round(wall, 1),
@@ -263,17 +308,36 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=1, help="cases run in this many processes side by side")
     ap.add_argument("--paced", action="store_true", help="--rig hil: the cores no faster than the wall clock")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--faults", default=None, metavar="NAME,...",
+                    help="draw only these faults (names of rigctl.core.faults.FAULTS; default the campaign's list)")
+    ap.add_argument("--draw", choices=("v1", "v2"), default="v2",
+                    help="v1: the campaign's draw before issue 75 (15 faults, plates of 0.25-6 kg/mm): the seeds of "
+                         "the cases fixed then (tests/simulation/test_sim_fault_campaign.py FIXED)")
+    ap.add_argument("--firmware-only", action="store_true",
+                    help="no driver stall (the rig as built has one: --as-built, the default): the firmware alone")
     ap.add_argument("--replay", type=int, default=None, metavar="SEED", help="run the case of SEED alone")
     ap.add_argument("--truth-log", type=Path, default=None, help="with --replay --rig hil: keep its truth log here")
     args = ap.parse_args(argv)
     if args.cases < 1 or args.jobs < 1 or args.seed < 0:
         ap.error("--cases and --jobs must be >= 1, --seed >= 0")
+    faults = None
+    if args.faults is not None:
+        faults = sorted({f.strip() for f in args.faults.split(",") if f.strip()})
+        unknown = [f for f in faults if f not in FAULTS]
+        if unknown or not faults:
+            ap.error(f"--faults: unknown fault {', '.join(unknown) or '(none given)'}; one of {', '.join(FAULTS)}")
+    if args.draw == "v1" and args.replay is None:
+        ap.error("--draw v1 replays a case fixed before issue 75 (with --replay SEED)")
+    refused = refusals(args.rig, faults or list(CAMPAIGN_FAULTS))
+    if refused:
+        ap.error(f"the {args.rig} rig cannot model " + "; ".join(f"{n}: {w}" for n, w in refused.items()))
+    as_built = not args.firmware_only
     if args.replay is not None:
         with tempfile.TemporaryDirectory(prefix="rigctl-campaign-") as tmp:
-            out = run_case(args.replay, args.rig, Path(tmp), args.truth_log, args.paced)
+            out = run_case(args.replay, args.rig, Path(tmp), args.truth_log, args.paced, faults, as_built, args.draw)
         print(json.dumps(out, indent=1))
-        return 1 if out["violations"] else 0
-    out = campaign(args.cases, args.seed, args.rig, args.jobs, args.paced)
+        return 1 if out["violations"] or out["not_run"] else 0
+    out = campaign(args.cases, args.seed, args.rig, args.jobs, args.paced, faults, as_built)
     if args.json:
         print(json.dumps(out, indent=1))
     else:
@@ -282,7 +346,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{out['worst_seed']}), {out['cases_per_minute']} cases/min, {out['sim_s_per_wall_s']} sim s per wall s")
         for v in out["violations"]:
             print(f"  seed {v['seed']}: {v['kind']} at {v['time_s']:.2f} s: {v['detail']} [{v['case']}]")
-    return 1 if out["violations"] else 0
+        for c in out["not_run_cases"]:
+            print(f"  seed {c['seed']}: did not run: {c['why']} [{c['case']}]")
+    return 1 if out["violations"] or out["not_run"] else 0
 
 
 if __name__ == "__main__":

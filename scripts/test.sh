@@ -110,6 +110,16 @@ if ! { { python3 -m uv --version >/dev/null 2>&1 || python3 -m pip install -q --
   python3 -m pip install -q --disable-pip-version-check -e ".[test]"
 fi
 
+# the build tools a guide's `pip install` of a plugin takes into its isolated build environment (docs/guides/
+# my-hardware.md: as a user's pip fetches them from the index), downloaded once so that the tests build offline
+# (tests/guides.py guide_env: PIP_NO_INDEX with this folder as PIP_FIND_LINKS)
+if python3 -m pip download -q --disable-pip-version-check --only-binary :all: -d "$TEST_TMP/wheelhouse" \
+    "setuptools>=70.1" wheel > "$TEST_TMP/wheelhouse.log" 2>&1; then
+  export RIGCTL_TEST_WHEELHOUSE="$TEST_TMP/wheelhouse"
+else
+  echo "== pip download of the guides' build tools failed (the my-hardware guide's test fails): $(tail -n 1 "$TEST_TMP/wheelhouse.log")"
+fi
+
 export RIGCTL_FIRMWARE_BUILD="$TEST_TMP/firmware" RIGCTL_HOST_BUILD="$TEST_TMP/host" HYPOTHESIS_STORAGE_DIRECTORY="$TEST_TMP/hypothesis" \
   NUMBA_CACHE_DIR="$TEST_TMP/numba"
 

@@ -161,6 +161,13 @@ def guide_env(work: Path) -> dict[str, str]:
     env.update(PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
                RIGCTL_CONFIG=str(work.parent / "rig.json"), XDG_CONFIG_HOME=str(work.parent / "config"),
                PYTHONUNBUFFERED="1", COLUMNS="120")
+    # a guide's pip builds in an isolated environment as a user's does (never from this environment's build tools,
+    # which a README environment lacks): its build tools from the wheelhouse scripts/test.sh downloaded, offline
+    wheelhouse = os.environ.get("RIGCTL_TEST_WHEELHOUSE")
+    if wheelhouse:
+        env.update(PIP_NO_INDEX="1", PIP_FIND_LINKS=wheelhouse)
+    elif os.environ.get("CI") == "true":
+        raise AssertionError("RIGCTL_TEST_WHEELHOUSE is not set: scripts/test.sh downloads the guides' build tools")
     return env
 
 

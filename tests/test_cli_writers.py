@@ -67,6 +67,9 @@ RUNS = {
                                     "session"),
     (("export", "trials"), "out"): ("", lambda p: ["export", "trials", p["session"], "--layout", "per-trial-csv",
                                                    "--out", p["T"], "--overwrite"], "session"),
+    # the model is read only after the output is checked: a stand-in file is enough for the four refusals
+    (("export", "nir"), "out"): (".nir", lambda p: ["export", "nir", p["model"], "--out", p["T"], "--overwrite"],
+                                 "model"),
     (("export", "nwb"), "out"): (".nwb", lambda p: ["export", "nwb", p["session"], "--out", p["T"], "--overwrite"],
                                  "session"),
     (("gui",), "screenshot"): (".png", lambda p: ["gui", "--replay", p["session"], "--screenshot", p["T"],
@@ -147,6 +150,8 @@ def inputs(tmp_path_factory):
     paths = {"session": _session(d / "input.h5"), "config": d / "rig.json", "csv": d / "rec.csv",
              "protocol": d / "p.toml", "folder": d / "fabricslide"}
     paths["config"].write_text("{}\n")
+    paths["model"] = d / "model.skops"
+    paths["model"].write_bytes(b"a stand-in for a model file: export nir refuses its output before reading it\n")
     paths["csv"].write_text("\n".join(",".join(["500"] * 18) for _ in range(200)) + "\n")
     paths["protocol"].write_text('name = "p"\ntextures = ["A"]\nspeeds_mm_s = [40]\nforces_g = [500]\n'
                                  'trials_per_condition = 1\nduration_s = 0.2\n')
@@ -208,3 +213,63 @@ def test_each_writer_refuses_to_replace(writer, case, inputs, tmp_path):
     assert {p: _state(p) for p in before} == before, (writer, case, "changed", out)
     assert sorted(os.listdir(out_dir)) + sorted(os.listdir(inputs["session"].parent)) == listing, out
     assert not (tmp_path / "new.h5").exists()
+
+
+#: the sidecars a writer makes beside its output (rigctl.storage.sidecars): a link at each must leave what it points
+#: to as it was, the link itself kept (issue 77 item 3: 13 of 13 writers followed one)
+SIDECARS = (".part", ".lock", ".creating", ".journal")
+#: the writers run to the end with a link at each sidecar (their RUNS argv, --overwrite left out; import with a
+#: texture so that it writes). The others write through the same code, tested with the library: analyze's four
+#: outputs, gui --screenshot and model files (outputs.replacing), export events/trials (a folder made by mkdtemp,
+#: no fixed name), import-fabricslide (importers.write_session, as import), serve's queue and token files
+#: (sidecars.write_small_file): tests/storage/test_storage_sidecars.py; serve's runs: tests/operations/
+#: test_serve_races.py
+SIDECAR_RUNS = {(("acquire",), "out"): (), (("doctor",), "config_path"): (), (("encode",), "out"): (),
+                (("export", "nwb"), "out"): (), (("import",), "out"): ("--texture", "A"),
+                (("sim", "dataset"), "out"): ()}
+
+
+@pytest.mark.parametrize("sidecar", SIDECARS)
+@pytest.mark.parametrize("writer", sorted(SIDECAR_RUNS), ids=lambda w: "-".join(w[0]) + ":" + w[1])
+def test_a_link_at_a_sidecar_is_never_followed(writer, sidecar, inputs, tmp_path):
+    """``<out><sidecar>`` is a symlink to a session outside the output folder: the run either writes its output
+    or refuses in one line, and the session the link points to is byte for byte as it was, the link still there.
+    ``.journal`` only for the writers of sessions (the others have none)."""
+    if sidecar == ".journal" and writer not in SESSION_WRITERS:
+        pytest.skip("only session writers keep a journal")
+    suffix, argv, _own = RUNS[writer]
+    out_dir, victim_dir = tmp_path / "out", tmp_path / "elsewhere"
+    out_dir.mkdir()
+    victim_dir.mkdir()
+    victim = shutil.copyfile(inputs["other_session"], victim_dir / "precious.h5")
+    target = out_dir / f"target{suffix}"
+    link = out_dir / (target.name + sidecar)
+    link.symlink_to(victim)
+    before = _digest(victim)
+    env = dict(os.environ, RIGCTL_CONFIG=str(tmp_path / "no-rig.json"), QT_QPA_PLATFORM="offscreen")
+    args = [str(a) for a in argv(dict(inputs, T=target, T_dir=target, new=tmp_path / "new.h5"))]
+    args = [a for a in args if a != "--overwrite"] + list(SIDECAR_RUNS[writer])
+    r = subprocess.run([*RIGCTL, *args], capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+    out = r.stdout + r.stderr
+    assert "Traceback" not in out and "internal error" not in out, out
+    if r.returncode:  # refused: the sidecar named, left as it is
+        assert "left as it is" in out, (writer, sidecar, out)
+        assert len([line for line in out.splitlines() if line.startswith("Error:")]) == 1, out
+    else:
+        assert target.is_file() and not target.is_symlink(), out
+    assert _digest(victim) == before, (writer, sidecar, "the file behind the link changed", out)
+    assert link.is_symlink() and os.readlink(link) == str(victim), (writer, sidecar, "the link was replaced", out)
+    assert sorted(os.listdir(victim_dir)) == ["precious.h5"]
+
+
+def test_a_users_own_part_file_is_kept(inputs, tmp_path):
+    """A file of the user's at ``<out>.part`` (not a link): refused in one line naming it, kept byte for byte."""
+    out = tmp_path / "enc.h5"
+    mine = tmp_path / "enc.h5.part"
+    mine.write_text("my notes, named like this for my own reasons\n")
+    r = subprocess.run([*RIGCTL, "encode", str(inputs["session"]), "--out", str(out)], capture_output=True,
+                       text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 2, r.stdout + r.stderr
+    errors = [line for line in (r.stdout + r.stderr).splitlines() if line.startswith("Error:")]
+    assert len(errors) == 1 and "enc.h5.part exists" in errors[0] and "left as it is" in errors[0], errors
+    assert mine.read_text() == "my notes, named like this for my own reasons\n" and not out.exists()

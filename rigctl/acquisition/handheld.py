@@ -269,6 +269,24 @@ def _tracker_attrs(raw: RawScan, t: np.ndarray, t_in: float, t_out: float, near:
             "abandoned_passes": int(abandoned)}
 
 
+def _check_scan_length(data: TrialData, planned: PlannedTrial, rate_hz: float) -> None:
+    """Refuse (ScanError: the run engine cues the scan again) a scan the session's validator would exclude as damaged
+    by its length (:func:`rigctl.storage.validate.length_bounds`: half to twice the cue's duration), naming the
+    speed the operator scanned at and the one asked for; it was recorded complete, then excluded."""
+    from rigctl.storage.validate import length_bounds
+
+    n = data.n_samples or (int(data.onboard.samples) if data.onboard is not None else 0)  # the board's count
+    lo, hi = length_bounds(planned.duration_s, rate_hz)
+    if lo <= n + data.dropped_frames <= hi:
+        return
+    took = n / rate_hz
+    mean = float(data.attrs.get("scan_mean_speed_mm_s", math.nan))
+    word = "slower" if n > hi else "faster"
+    raise ScanError(f"the scan took {took:.2f} s ({mean:.0f} mm/s), more than 2x {word} than the cue's "
+                    f"{planned.duration_s:.2f} s at {planned.speed_mm_s:g} mm/s: scan again at about "
+                    f"{planned.speed_mm_s:g} mm/s")
+
+
 def plate_axis_from_config(host_config: dict[str, Any]) -> PlateAxis | None:
     """The plate axis of a rig config's ``handheld`` block (:meth:`PlateAxis.to_dict`), None without one. Raises
     ValueError for a bad block."""
@@ -422,6 +440,7 @@ class HandheldRig(Rig):
             if raw is None:
                 raise TrialAborted("stopped before the scan")
             data = cut_scan(raw, self.layout, self.axis)
+            _check_scan_length(data, planned, self.layout.sample_rate_hz)
         data.attrs.setdefault("started_utc", started)
         for listener in list(self.marker_listeners):
             fields = {"texture": planned.texture, "profile": planned.profile, "trial_id": planned.trial_id}

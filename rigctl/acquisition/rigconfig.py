@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from rigctl.core.interfaces import RIG_KINDS
+from rigctl.storage.sidecars import write_small_file
 
 __all__ = ["CalibrationError", "RigConfigError", "SCHEMA", "default_config_path", "config_path", "load_rig_config",
            "loadcell_scale_mismatch", "save_rig_config", "update_rig_config", "validate_rig_config"]
@@ -257,9 +258,8 @@ def save_rig_config(config: dict, path: str | os.PathLike | None = None) -> Path
     p = config_path(path)
     validate_rig_config(config, str(p))
     p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(json.dumps(config, indent=2, sort_keys=True) + "\n", encoding="utf-8")
-    os.replace(tmp, p)
+    # a sidecar of a random name, created new (never a file or link already there), renamed over the config
+    write_small_file(p, (json.dumps(config, indent=2, sort_keys=True) + "\n").encode("utf-8"))
     return p
 
 

@@ -30,6 +30,8 @@ __all__ = [
     "plot_confusions",
     "paper_ordering",
     "format_ordering",
+    "size_note",
+    "PAPER_SIZE",
     "OrderingPair",
     "prediction_collapse",
     "format_collapse",
@@ -239,8 +241,36 @@ def paper_ordering(res: TaskResults, n_pcs=50, *, margin=ORDERING_MARGIN_PCT) ->
     return out
 
 
+#: the paper's size (Methods, statistical analysis): trials drawn per texture in the CV rows, training trials per
+#: texture and trained cell in the extrapolation rows, repetitions
+PAPER_SIZE = {"per_texture": 500, "train_per_cell": 75, "repeats": 20}
+#: below this fraction of the paper's size (any of the three), a table's ordering is not expected to reproduce
+SMALL_FRACTION = 0.2
+
+
+def size_note(res: TaskResults) -> str | None:
+    """One line when the results come from far fewer trials or repetitions than the paper's (:data:`PAPER_SIZE`,
+    under :data:`SMALL_FRACTION` of any of them): what such a table can and cannot show. None at a size near the
+    paper's, or when the results say nothing of their size."""
+    cv = res.counts.get("cv") or {}
+    ex = res.counts.get("extrapolation") or {}
+    here = {"per_texture": cv.get("per_texture"), "train_per_cell": ex.get("train_per_cell"),
+            "repeats": cv.get("repeats", ex.get("repeats"))}
+    small = [k for k, v in here.items() if v is not None and v < SMALL_FRACTION * PAPER_SIZE[k]]
+    if not small:
+        return None
+    words = {"per_texture": "trials per texture in the cross-validated rows",
+             "train_per_cell": "training trials per texture and trained cell in the extrapolation rows",
+             "repeats": "repetitions"}
+    have = ", ".join(f"{here[k]} {words[k]} (paper: {PAPER_SIZE[k]})" for k in PAPER_SIZE if here[k] is not None)
+    return (f"size: {have}. At this size the accuracies are noisy and the PCA/LDA is fitted on few trials, so the "
+            "paper's values and ordering are not expected to reproduce: a first try of every step, not a test of the "
+            "paper's claims (those need its size: docs/guides/reproducing-the-paper.md)")
+
+
 def format_ordering(res: TaskResults, n_pcs=50) -> str:
-    """One line per Table 1 row: whether the paper's ordering of the variants holds, and the pairs that break it."""
+    """One line per Table 1 row: whether the paper's ordering of the variants holds, and the pairs that break it;
+    first, for results far below the paper's size, what they cannot show (:func:`size_note`)."""
     lines = []
     for task, pairs in paper_ordering(res, n_pcs).items():
         broken = [p for p in pairs if p.reversed]
@@ -253,7 +283,8 @@ def format_ordering(res: TaskResults, n_pcs=50) -> str:
                              f"{'identical' if p.identical else 'tied'}" for p in ties)
             verdict = f"{verdict}{'; ' if verdict else ''}not compared: {same}"
         lines.append(f"paper's ordering, {task_title(task)}: {verdict}")
-    return "\n".join(lines)
+    note = size_note(res) if lines else None
+    return "\n".join(([note] if note else []) + lines)
 
 
 #: the extrapolation rows, whose test conditions the classifier never saw

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from rigctl.cli.jsonout import json_text
-from rigctl.cli.outputs import HDF5_SUFFIXES, check_output
+from rigctl.cli.outputs import HDF5_SUFFIXES, UsageProblem, check_output
 from rigctl.cli.progress import bars, progress_option, show_bars
 from rigctl.cli.ranges import MAX_VOLTS, RATE_HZ, floats
 
@@ -68,14 +68,23 @@ def _checked_segment(ctx, param, value):
 @click.option("--scale", type=floats(-1e12, 1e12), default=None, metavar="S",
               help="Readings that are not counts: counts = x * S + O, then rounded (recorded). Without it, "
                    "--offset or --volts-ref, readings that are not whole counts are refused.")
+@click.option("--clip", is_flag=True, default=None,
+              help="Pin values outside the ADC range (volts at or above --volts-ref, a --resample overshoot) to it, "
+                   "counted and printed; without it they are refused.")
 @click.option("--offset", type=floats(-1e12, 1e12), default=None, metavar="O", help="See --scale (default 0).")
 @click.option("--columns", default=None, metavar="A,B,...",
               help="CSV: the channel columns, in channel order (header names or 0-based indices); the other "
                    "columns are not imported (default: every column but the time column).")
 @click.option("--time-column", default=None, metavar="NAME",
-              help="CSV: the column of sample times, s (a name ending _ms: ms); the readings are resampled onto "
-                   "the --rate grid (linear), the jitter and gaps stated (default: a column named time, timestamp, "
-                   "t, time_s or time_ms).")
+              help="CSV: the column of sample times; the readings are resampled onto the --rate grid (linear), the "
+                   "jitter and gaps stated (default: a column named as one: time, timestamp, t, seconds, time_s, "
+                   "time_ms, millis, 'Time (ms)', time_us, micros, time_ns, ...). Its unit: --time-unit or its name.")
+@click.option("--time-unit", type=click.Choice(["s", "ms", "us", "ns"]), default=None,
+              help="The time column's unit (required when its name does not say it; never guessed). The rate it "
+                   "implies is checked against --rate before anything is allocated.")
+@click.option("--repeated-stamps", type=click.Choice(["refuse", "keep-first"]), default=None,
+              help="Rows with the time stamp of the row before: refuse (default), or keep the first of each (the "
+                   "others dropped, counted and printed, recorded in the import steps).")
 @click.option("--variable", default=None, metavar="NAME",
               help="NPZ / MAT: the array, NWB: the TimeSeries holding the taxels (a file with several series and "
                    "none named taxels is refused without it; the one read is always named).")
@@ -93,8 +102,8 @@ def _checked_segment(ctx, param, value):
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @progress_option
 def import_recordings(files, out, rate_hz, channels, layout, label_pattern, texture, resample_hz, segment_spec,
-                      align, pre_ms, min_swing, mapping, volts_ref, scale, offset, columns, time_column, variable, nan,
-                      adc_bits, preset, skip_bad, overwrite, as_json, progress):
+                      align, pre_ms, min_swing, mapping, volts_ref, scale, clip, offset, columns, time_column, time_unit,
+                      repeated_stamps, variable, nan, adc_bits, preset, skip_bad, overwrite, as_json, progress):
     """Import FILES (format from the extension: .csv, .npy, .npz, .mat, .nwb) into the session file --out.
 
     A CSV holds one column per channel (a header row is skipped; ``,``, ``;`` with decimal commas, tab or spaces;
@@ -103,6 +112,7 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
     mapping); each is recorded in the session's attributes and what changed the numbers is printed.
     """
     from rigctl.operations import import_recordings as run
+    from rigctl.storage.time_column import TimeColumnError
 
     check_output(out, overwrite=overwrite, inputs=(*files, mapping), kind="session", suffixes=HDF5_SUFFIXES)
     if preset is not None and len(files) != 1:
@@ -111,12 +121,14 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
         rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern, texture=texture,
         resample_hz=resample_hz, segment_spec=segment_spec, align=align, pre_ms=pre_ms, min_swing=min_swing,
         mapping=mapping,
-        volts_ref=volts_ref, adc_bits=adc_bits, nan=nan, skip_bad=skip_bad, scale=scale, offset=offset,
+        volts_ref=volts_ref, adc_bits=adc_bits, nan=nan, skip_bad=skip_bad, scale=scale, offset=offset, clip=clip,
         columns=[c.strip() for c in columns.split(",") if c.strip()] if columns else None,
-        time_column=time_column, variable=variable)
+        time_column=time_column, time_unit=time_unit, repeated_stamps=repeated_stamps, variable=variable)
     try:
         with bars(show_bars(progress) and not as_json) as progress:
             report = run(files, out, preset=preset, overwrite=overwrite, progress=progress, **options)
+    except TimeColumnError as exc:  # what the command line must say (a unit, a rate that disagrees): exit 2
+        raise UsageProblem(str(exc)) from None
     except (FileExistsError, FileNotFoundError, ValueError) as exc:  # RecordingImportError is a ValueError
         raise click.ClickException(str(exc)) from None
     for line in report.warnings:

@@ -110,7 +110,10 @@ def parse_injections(ctx: click.Context, param: click.Parameter, value: tuple[st
 
 
 #: how the help names a fault that takes a value
-FAULT_FORMS = {"taxel-ohm": "taxel-ohm=N", "contact-stiffness": "contact-stiffness=G_PER_MM"}
+FAULT_FORMS = {"taxel-ohm": "taxel-ohm=N", "contact-stiffness": "contact-stiffness=G_PER_MM", "slip": "slip=N%",
+               "home-switch": "home-switch=closed|open", "cell-gain": "cell-gain=X", "cell-offset": "cell-offset=G",
+               "coupling-slip": "coupling-slip=N%", "steps-lost": "steps-lost=N%",
+               "hx711-dout-noise": "hx711-dout-noise=P", "calibration-scale": "calibration-scale=X"}
 
 #: ``--inject FAULT@T[+D]`` (repeatable): faults injected into a simulated rig (rigctl.core.faults, docs/safety.md)
 inject_option = click.option(

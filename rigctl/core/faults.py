@@ -56,17 +56,40 @@ FAULTS: dict[str, str] = {
                          "G_PER_MM g/mm (the rig's own again at T+D)",
     "eeprom-corrupt": "the drum controller browns out at T while writing its EEPROM: the stored calibration fails "
                       "its checksum and the controller resets (with @0: corrupt from power-on); D is not used",
+    "home-switch": "home-switch=closed|open: the actuator's home switch reads closed wherever the actuator is (its "
+                   "wire shorted to the frame) or never closes (a broken wire) from T to T+D",
+    "cell-gain": "cell-gain=X: the load cell gives X times the signal its calibration says (creep, an excitation "
+                 "lead's joint, a cell of another range; 0.3-3) from T to T+D",
+    "cell-offset": "cell-offset=G: the load cell's zero moves by G g (a mount changed since calibration, a cable "
+                   "pulled; -5000 to 5000) from T to T+D",
+    "coupling-slip": "coupling-slip=N%: the actuator's coupling slips N % of the motor's steps and catches up at once "
+                     "when the motor holds still (the screw jumps) from T to T+D",
+    "steps-lost": "steps-lost=N%: the actuator's motor loses N % of its steps for good (a weak driver, a binding "
+                  "screw) from T to T+D",
+    "hx711-dout-noise": "hx711-dout-noise=P: each bit the controller reads on the HX711's DOUT wire flips with "
+                        "probability P (interference on the wire; 0-1) from T to T+D",
+    "driver-enable-stuck": "the stepper drivers' EN input is stuck active (a shorted wire): they drive whatever the "
+                           "controller's EN output says, from T to T+D",
+    "calibration-scale": "calibration-scale=X: a wrong calibration is saved at T (the load-cell scale X times the "
+                         "true one, its checksum valid; 0.3-3) and the controller powered on again with it; D is not "
+                         "used",
 }
 __doc__ = (__doc__ or "") + "\n".join(f"- ``{name}``: {what}" for name, what in FAULTS.items()) + "\n"
 
 #: faults that happen at one instant (their duration is not used)
-INSTANT_FAULTS = frozenset({"reset", "hx711-10sps", "eeprom-corrupt"})
+INSTANT_FAULTS = frozenset({"reset", "hx711-10sps", "eeprom-corrupt", "calibration-scale"})
 #: faults that take a value (``name=value``)
-VALUED_FAULTS = frozenset({"taxel-ohm", "slip", "contact-stiffness"})
+VALUED_FAULTS = frozenset({"taxel-ohm", "slip", "contact-stiffness", "home-switch", "cell-gain", "cell-offset",
+                           "coupling-slip", "steps-lost", "hx711-dout-noise", "calibration-scale"})
 #: faults whose value is a percentage (``slip=20%``; the ``%`` may be left out), 0-100
-PERCENT_FAULTS = frozenset({"slip"})
+PERCENT_FAULTS = frozenset({"slip", "coupling-slip", "steps-lost"})
+#: faults whose value is a word: name -> {word: the value it stands for}
+WORD_VALUES: dict[str, dict[str, float]] = {"home-switch": {"open": 0.0, "closed": 1.0}}
 #: the range of each valued fault's value (the others: 0 to 1e9): a contact stiffness in g/mm must be > 0
-VALUE_RANGES: dict[str, tuple[float, float]] = {"slip": (0.0, 100.0), "contact-stiffness": (1.0, 1e5)}
+VALUE_RANGES: dict[str, tuple[float, float]] = {
+    "slip": (0.0, 100.0), "contact-stiffness": (1.0, 1e5), "coupling-slip": (0.0, 100.0), "steps-lost": (0.0, 100.0),
+    "cell-gain": (0.3, 3.0), "cell-offset": (-5000.0, 5000.0), "hx711-dout-noise": (0.0, 1.0),
+    "calibration-scale": (0.3, 3.0), "home-switch": (0.0, 1.0)}
 
 _SPEC = re.compile(r"^(?P<name>[a-z0-9-]+)(=(?P<value>[^@]+))?@(?P<at>[^+]+)(\+(?P<dur>.+))?$")
 
@@ -97,7 +120,9 @@ class FaultSpec:
         return self.at_s + self.duration_s
 
     def __str__(self) -> str:
-        value = "" if self.value is None else f"={self.value:g}{'%' if self.name in PERCENT_FAULTS else ''}"
+        words = {v: w for w, v in WORD_VALUES.get(self.name, {}).items()}
+        value = ("" if self.value is None else f"={words[self.value]}" if self.value in words
+                 else f"={self.value:g}{'%' if self.name in PERCENT_FAULTS else ''}")
         dur = "" if math.isinf(self.duration_s) or self.name in INSTANT_FAULTS else f"+{self.duration_s:g}"
         return f"{self.name}{value}@{self.at_s:g}{dur}"
 
@@ -131,10 +156,16 @@ def parse_fault(spec: str) -> FaultSpec:
         if m["value"] is None:
             raise FaultSpecError(f"--inject {text}: {name} needs a value ({name}=N@T)")
         low, top = VALUE_RANGES.get(name, (0.0, 1e9))
-        try:
-            value = float(m["value"].removesuffix("%") if name in PERCENT_FAULTS else m["value"])
-        except ValueError:
-            raise FaultSpecError(f"--inject {text}: {name}'s value {m['value']!r} is not a number") from None
+        words = WORD_VALUES.get(name)
+        if words is not None:
+            if m["value"] not in words:
+                raise FaultSpecError(f"--inject {text}: {name}'s value must be one of {', '.join(words)}")
+            value = words[m["value"]]
+        else:
+            try:
+                value = float(m["value"].removesuffix("%") if name in PERCENT_FAULTS else m["value"])
+            except ValueError:
+                raise FaultSpecError(f"--inject {text}: {name}'s value {m['value']!r} is not a number") from None
         if not (math.isfinite(value) and low <= value <= top):
             raise FaultSpecError(f"--inject {text}: {name}'s value must be {low:g} to {top:g}, got {m['value']}")
     elif m["value"] is not None:

@@ -268,6 +268,22 @@ def refuse_older_than_cue(t: np.ndarray, arrived: np.ndarray, entry: int, t_cue:
                         "refused, not recorded")
 
 
+def _positions_seen(pos: np.ndarray) -> str:
+    """``": along the plate it saw 0.02 to 0.29 (mm?): ..."``: what the tracker's positions were, and a unit that
+    fits them better when they span a pass in metres or centimetres (a tracker without unit metadata), for the
+    message of a scan that never came."""
+    pos = pos[np.isfinite(pos)] if pos.size else pos
+    if not pos.size:
+        return ""
+    lo, hi = float(pos.min()), float(pos.max())
+    seen = f"; along the plate it saw {lo:.3g} to {hi:.3g} mm (a pass goes {USED_START_MM:g} to {USED_END_MM:g})"
+    for unit, factor in (("metres", 1000.0), ("centimetres", 10.0)):
+        if lo * factor < USED_START_MM and hi * factor > USED_END_MM:
+            return (f"{seen}: those are a whole pass in {unit}; rigctl takes mm (scale the tracker's stream to mm, "
+                    "or give its unit in the stream's metadata)")
+    return seen
+
+
 def wait_for_pass(tracker: Tracker, along: Callable[[np.ndarray], np.ndarray], t_cue: float, *,
                   stop: Callable[[], bool] | None = None, timeout_s: float = 60.0,
                   poll_s: float = 0.02) -> tuple[np.ndarray, np.ndarray] | None:
@@ -288,7 +304,7 @@ def wait_for_pass(tracker: Tracker, along: Callable[[np.ndarray], np.ndarray], t
             break
         if time.monotonic() - t_cue > timeout_s:
             raise ScanError(f"no pass of the finger through the plate within {timeout_s:g} s (the tracker sent "
-                            f"{t.size} samples)")
+                            f"{t.size} samples){_positions_seen(pos)}")
         time.sleep(poll_s)
     if arrived is not None:
         inside = np.flatnonzero(pos[entered[0]:] >= USED_START_MM)

@@ -40,8 +40,9 @@ from rigctl.operations._monitor import RigEvent
 from rigctl.operations._rules import RUN_STATES
 from rigctl.operations._run import ProtocolRun
 from rigctl.storage.journal import WriterLock, WriterLockHeld
-from rigctl.storage.outputs import OutputError, OutputLocked, check_output, place_in_folder
+from rigctl.storage.outputs import OutputError, OutputLocked, check_output, opened_in_folder, place_in_folder
 from rigctl.storage.session import SessionLocked
+from rigctl.storage.sidecars import write_small_file
 
 __all__ = ["QueueError", "QueuedRun", "RunQueue", "RUN_QUEUE_STATES", "lock_queue_file", "read_queue_file"]
 
@@ -216,6 +217,8 @@ class RunQueue:
         #: STOP holds the queue: no further run starts until release()
         self.held = False
         self._closing = False
+        #: (the descriptor path of the running run's folder, its name) while a run records (:meth:`_shown`)
+        self._alias: tuple[str, str] | None = None
         self._thread: threading.Thread | None = None
         self._subscribers: list[queue.Queue[dict[str, Any] | None]] = []
         self._streams_ended = False
@@ -267,14 +270,9 @@ class RunQueue:
     def _save(self) -> None:
         self._prune()
         self._saved_t = time.monotonic()
-        tmp = self.path.with_name(self.path.name + ".tmp")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         doc = {"format": QUEUE_FORMAT, "runs": [r.to_dict() for r in self.runs.values()]}
-        with open(tmp, "w") as f:
-            json.dump(doc, f, indent=1)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, self.path)
+        write_small_file(self.path, json.dumps(doc, indent=1).encode())  # a sidecar of a random name, renamed
 
     # ----------------------------------------------------------------------------------------------- events
     def subscribe(self) -> "queue.Queue[dict[str, Any] | None]":
@@ -568,7 +566,7 @@ class RunQueue:
     def _fail(self, run: QueuedRun, exc: BaseException) -> None:
         with self._lock:
             self.current = self.current_id = None
-            self._set(run, state="failed", errors=[*run.errors, describe_error(exc)],
+            self._set(run, state="failed", errors=[*run.errors, self._shown(describe_error(exc))],
                       ended_utc=_utc_now())
 
     def _run_path(self, run: QueuedRun) -> Path:
@@ -586,11 +584,31 @@ class RunQueue:
         return out
 
     def _record(self, run: QueuedRun) -> None:
+        """Record ``run``: its path checked again as it starts, then written through the descriptor of its
+        subfolder (:func:`rigctl.storage.outputs.opened_in_folder`: a subfolder flipped to a link meanwhile sends
+        nothing elsewhere); messages name the path by name."""
         try:
             out = self._run_path(run)
+            with contextlib.ExitStack() as held:
+                if self.data_dir is not None:
+                    name = Path(run.out).relative_to(self.data_dir).as_posix()
+                    via = held.enter_context(opened_in_folder(self.data_dir, name))
+                    self._alias = (str(via.parent), str(out.parent))
+                    out = via
+                self._record_at(run, out)
         except QueueError as exc:  # refused as it starts: failed, nothing written
             self._fail(run, exc)
-            return
+        except OutputError as exc:
+            self._fail(run, QueueError(str(exc), 422))
+        finally:
+            self._alias = None
+
+    def _shown(self, text: str) -> str:
+        """``text`` with the descriptor path of the run's folder as its name (``/proc/<pid>/fd/<n>`` -> the folder)."""
+        alias = self._alias
+        return text.replace(alias[0], alias[1]) if alias else text
+
+    def _record_at(self, run: QueuedRun, out: Path) -> None:
         resume = run.starts > 0 and out.exists()
         # a session a killed server was writing stays locked while its journal helper finishes the last commit
         # (rigctl.storage.journal): a restart that resumes it at once waits for the lock, up to LOCKED_WAIT_S
@@ -622,11 +640,13 @@ class RunQueue:
         with self._lock:
             self.current = self.current_id = None
             if self._closing and not summary.ok:  # the server is ending: resume at its next start
-                self._set(run, state="queued", trials_done=summary.complete, summary=summary.lines())
+                self._set(run, state="queued", trials_done=summary.complete,
+                          summary=[self._shown(line) for line in summary.lines()])
                 return
             state = "done" if summary.ok else ("stopped" if summary.stopped else "failed")
             self._set(run, state=state, trials_done=summary.complete, trials_total=summary.planned,
-                      errors=[*run.errors, *summary.failures], summary=summary.lines(), ended_utc=_utc_now())
+                      errors=[*run.errors, *map(self._shown, summary.failures)],
+                      summary=[self._shown(line) for line in summary.lines()], ended_utc=_utc_now())
 
     def _progress(self, run: QueuedRun, event: ProgressEvent) -> None:
         if event.total is not None and (event.done != run.trials_done or event.total != run.trials_total):

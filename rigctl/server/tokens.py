@@ -12,6 +12,8 @@ import os
 import secrets
 from pathlib import Path
 
+from rigctl.storage.sidecars import write_small_file
+
 __all__ = ["MIN_TOKEN_CHARS", "TokenError", "check_token", "default_queue_file", "default_data_dir", "new_token",
            "read_token_file", "remove_token_file", "token_file_for", "write_token_file"]
 
@@ -63,16 +65,9 @@ def write_token_file(path: str | os.PathLike[str], *, url: str, token: str) -> P
     """Write ``{"url", "token", "pid"}`` to ``path``, mode 0600 from its creation (written aside, renamed)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0), 0o600)
-    try:
-        os.fchmod(fd, 0o600)  # a leftover tmp file of another mode
-        os.write(fd, json.dumps({"url": url, "token": token, "pid": os.getpid()}).encode())
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.replace(tmp, p)
-    return p
+    # a sidecar of a random name, created new with mode 0600 (never a file or link already there), renamed over
+    return write_small_file(p, json.dumps({"url": url, "token": token, "pid": os.getpid()}).encode(), mode=0o600,
+                            exact_mode=True)
 
 
 def read_token_file(path: str | os.PathLike[str], url: str | None = None) -> str | None:

@@ -37,7 +37,8 @@ import numpy as np
 from rigctl.core.faults import FAULTS, INSTANT_FAULTS, FaultSpec
 from rigctl.devices import wire
 
-__all__ = ["Case", "COLUMNS", "read_truth_log", "MOMENTS", "FORCE_BOUND_G", "CONTACT_G", "LATCH_STEP_MM", "LATCH_GRACE_S", "draw_case",
+__all__ = ["CAMPAIGN_FAULTS", "CAMPAIGN_FAULTS_V1", "Case",
+           "COLUMNS", "read_truth_log", "MOMENTS", "FORCE_BOUND_G", "CONTACT_G", "LATCH_STEP_MM", "LATCH_GRACE_S", "draw_case",
            "check_invariants", "ModelTruth", "Violation"]
 
 #: the truth log's columns the invariants judge, in this order
@@ -53,9 +54,23 @@ CONTACT_G = 5.0
 LATCH_STEP_MM = 0.01
 #: the truth rows within this long after the latch are not judged, s (the latch's own control period)
 LATCH_GRACE_S = 0.005
-#: the range of each valued fault's drawn value (contact-stiffness: the plate swapped for one of 0.25-6 kg/mm)
+#: the range of each valued fault's drawn value (contact-stiffness: the plate swapped for one of 0.1-100 kg/mm, the
+#: whole range a rig config accepts, MechanicsConfig.contact_stiffness_g_per_mm <= 1e5; home-switch: 0 open, 1 closed)
 _VALUE_DRAWS: dict[str, tuple[float, float, bool]] = {  # name -> (low, high, log-uniform)
-    "contact-stiffness": (250.0, 6000.0, True), "slip": (5.0, 60.0, False), "taxel-ohm": (47e3, 2e6, True)}
+    "contact-stiffness": (100.0, 1e5, True), "slip": (5.0, 60.0, False), "taxel-ohm": (47e3, 2e6, True),
+    "cell-gain": (0.3, 3.0, True), "cell-offset": (-1000.0, 1000.0, False), "coupling-slip": (5.0, 60.0, False),
+    "steps-lost": (5.0, 60.0, False), "hx711-dout-noise": (1e-4, 0.05, True), "calibration-scale": (0.3, 3.0, True)}
+#: faults whose drawn value is one of two words (0 or 1: rigctl.core.faults.WORD_VALUES)
+_WORD_DRAWS = frozenset({"home-switch"})
+#: the one list of faults the campaign draws from, on every rig (issue 80: the same seed is the same case on the model
+#: rig and under simavr; a rig that cannot model one of them is an error, never a redraw)
+CAMPAIGN_FAULTS: tuple[str, ...] = tuple(sorted(FAULTS))
+#: the campaign's draw before the bill of materials' faults were added (issue 75): its list of faults and its plate
+#: swaps' stiffness (0.25-6 kg/mm); the seeds of the cases fixed then draw their old cases from it (``draw="v1"``)
+_VALUE_DRAWS_V1 = {**_VALUE_DRAWS, "contact-stiffness": (250.0, 6000.0, True)}
+CAMPAIGN_FAULTS_V1: tuple[str, ...] = (
+    "contact-stiffness", "eeprom-corrupt", "estop", "host-silence", "hx711-10sps", "hx711-frozen", "hx711-sck-broken",
+    "reset", "reversed-actuator", "reversed-cell", "reversed-drum", "slip", "stall", "taxel-link-drop", "taxel-ohm")
 
 
 @dataclass(frozen=True)
@@ -80,7 +95,7 @@ class Case:
                          self.value)
 
     def describe(self) -> str:
-        value = "" if self.value is None else f"={self.value:g}"
+        value = "" if self.value is None else str(self.spec(0.0)).split("@")[0][len(self.fault):]
         dur = "" if self.fault in INSTANT_FAULTS or math.isinf(self.duration_s) else f" for {self.duration_s:.2f} s"
         return (f"{self.fault}{value} at {self.moment} ({self.moment_fraction:.2f}){dur}; contact "
                 f"{self.stiffness_g_per_mm:.0f} g/mm, HX711 {self.hx711_rate_sps} SPS, forces "
@@ -93,19 +108,26 @@ class Case:
         return out
 
 
-def draw_case(seed: int, faults: Sequence[str] | None = None) -> Case:
-    """The case of ``seed`` (an int >= 0), its fault drawn from ``faults`` (default every name of FAULTS; a rig
-    passes those it can model). Raises ValueError for an empty ``faults``."""
-    names = sorted(faults if faults is not None else FAULTS)
+def draw_case(seed: int, faults: Sequence[str] | None = None, draw: str = "v2") -> Case:
+    """The case of ``seed`` (an int >= 0), its fault drawn from ``faults`` (default :data:`CAMPAIGN_FAULTS`, the same
+    on every rig; ``--faults`` narrows it); ``draw="v1"``: the draw of before issue 75 (default faults
+    :data:`CAMPAIGN_FAULTS_V1`, plate swaps of 0.25-6 kg/mm), which the cases fixed then are replayed with. Raises
+    ValueError for an empty ``faults`` or an unknown ``draw``."""
+    if draw not in ("v1", "v2"):
+        raise ValueError(f"draw must be v1 or v2, got {draw!r}")
+    value_draws = _VALUE_DRAWS_V1 if draw == "v1" else _VALUE_DRAWS
+    names = sorted(faults if faults is not None else CAMPAIGN_FAULTS_V1 if draw == "v1" else CAMPAIGN_FAULTS)
     if not names:
         raise ValueError("no fault to draw from")
     rng = np.random.default_rng([int(seed), 55])
     fault = names[int(rng.integers(len(names)))]
     value = None
-    if fault in _VALUE_DRAWS:
-        low, high, log = _VALUE_DRAWS[fault]
+    if fault in value_draws:
+        low, high, log = value_draws[fault]
         value = float(math.exp(rng.uniform(math.log(low), math.log(high))) if log else rng.uniform(low, high))
         value = float(f"{value:.4g}")
+    elif fault in _WORD_DRAWS:
+        value = 1.0 if rng.uniform() < 0.5 else 0.0
     moment = MOMENTS[int(rng.integers(len(MOMENTS)))]
     fraction = float(rng.uniform(0.0, 1.0))
     duration = math.inf if rng.uniform() < 0.5 else float(rng.uniform(0.2, 4.0))

@@ -12,6 +12,12 @@ hook with its harness.
 ``contact-stiffness`` swaps the plate (the model's spring), ``eeprom-corrupt`` flips a bit of the controller's stored
 calibration and browns it out.
 
+The bill of materials' own faults (docs/safety.md, "FMEA") act on the model's physics: ``cell-gain`` and
+``cell-offset`` on the load cell's signal, ``coupling-slip`` and ``steps-lost`` on the actuator's travel,
+``hx711-dout-noise`` on the bits read, ``home-switch`` on the switch as its wire reads (the controller is given the
+model's :attr:`~rigctl.simulation.model.RigModel.home_switch_closed`), ``driver-enable-stuck`` on the drivers'
+enable, ``calibration-scale`` saves a wrong calibration (its checksum valid) and powers the controller on again.
+
 ``taxel-ohm`` sets the source impedance of the taxel board's analog front end
 (:class:`rigctl.simulation.mux_rc.MuxFrontEnd`: the anti-alias RC and the mux the firmware discharges before each
 input; the firmware's own ADC under simavr with ``--hil``).
@@ -24,6 +30,7 @@ from collections.abc import Callable
 
 from rigctl.core.drum import ResetCause
 from rigctl.core.faults import FaultSpec
+from rigctl.devices import wire
 from rigctl.simulation.controller import MegaController
 from rigctl.simulation.model import RigModel
 
@@ -35,6 +42,19 @@ log = logging.getLogger(__name__)
 def model_fault_refusal(spec: FaultSpec) -> str | None:
     """Why no model rig can inject ``spec`` (None: they can)."""
     return None
+
+
+def _save_wrong_calibration(controller: MegaController, scale: float) -> None:
+    """The controller's stored calibration record rewritten with its load-cell scale ``scale`` times the one in force,
+    its checksum valid (``calibration-scale``)."""
+    with controller._lock:
+        rec = dict(controller._valid_calibration() or {
+            "scale_x100": controller.scale_x100,
+            "actuator_steps_per_mm": controller.holding[wire.HoldingRegister.ACTUATOR_STEPS_PER_MM]})
+        rec["scale_x100"] = int(round(int(rec["scale_x100"]) * scale))
+        rec["crc"] = controller._record_crc(rec)
+        controller.eeprom["calibration"] = rec
+        controller._write_eeprom_file()
 
 
 class ModelFaults:
@@ -110,6 +130,26 @@ class ModelFaults:
             m.freeze_hx711(active)
         elif name == "contact-stiffness":  # a plate swap (the rig's own plate again at the end)
             m.set_contact_stiffness(spec.value if active and spec.value else self._stiffness_g_per_mm)
+        elif name == "home-switch":  # the switch as its wire reads, for the controller (its own reading: the model's)
+            m.home_switch_stuck = bool(spec.value) if active else None
+            if not getattr(c, "_reads_model_home_switch", False):
+                c._home_switch = lambda: m.home_switch_closed  # type: ignore[method-assign]
+                c._reads_model_home_switch = True  # type: ignore[attr-defined]
+        elif name == "cell-gain":
+            m.loadcell_gain = float(spec.value or 1.0) if active else 1.0
+        elif name == "cell-offset":
+            m.loadcell_offset_g = float(spec.value or 0.0) if active else 0.0
+        elif name == "coupling-slip":
+            m.actuator_slip = (spec.value or 0.0) / 100.0 if active else 0.0
+        elif name == "steps-lost":
+            m.actuator_lost = (spec.value or 0.0) / 100.0 if active else 0.0
+        elif name == "hx711-dout-noise":
+            m.hx711_dout_noise = float(spec.value or 0.0) if active else 0.0
+        elif name == "driver-enable-stuck":
+            m.driver_enable_stuck = active
+        elif name == "calibration-scale":  # a wrong calibration saved, its checksum valid; then a power cycle
+            _save_wrong_calibration(c, float(spec.value or 1.0))
+            c.reset(ResetCause.POWER_ON)
         elif name == "eeprom-corrupt":  # a brown-out while the EEPROM is written: the record fails its checksum
             c.corrupt_eeprom()
             c.reset(ResetCause.BROWN_OUT)

@@ -43,7 +43,7 @@ from rigctl.devices import wire
 from rigctl.simulation.hil_clock import HilClockFile
 from rigctl.simulation.hil_faults import HilFaults
 from rigctl.simulation.hil_harness import HilError, _Harness
-from rigctl.simulation.mega_eeprom import EepromError, default_record, eeprom_offset
+from rigctl.simulation.mega_eeprom import EepromError, default_record, eeprom_offset, state_address
 from rigctl.simulation.priority import board_thread
 from rigctl.simulation.truth import TruthLog
 
@@ -65,6 +65,11 @@ _MAX_CORRECTION = 0.2
 _MIN_SPEED = 0.01
 
 
+#: wall time the Mega's core may stand still, alive and granted time, before a wait calls its harness hung, s: a
+#: liveness guard against a hung process, far beyond any starvation seen (a pty hop's 30 s, KERNEL_HOP_MAX_S)
+HARNESS_HANG_S = 300.0
+
+
 def _parse_kv(line: str) -> dict[str, float]:
     return {k: float(v) for k, v in _KV.findall(line)}
 
@@ -84,6 +89,9 @@ class Telemetry:
     drivers_enabled: bool = True  #: the stepper drivers' EN pin is active (low) now
     steps_disabled: int = 0  #: STEP pulses so far while the drivers were disabled (they moved nothing)
     ee_writes: int = 0  #: EEPROM byte writes the MCU made so far (EECR's EEPE), for the wear tests
+    force_max_g: float = 0.0  #: the largest true force since the harness's previous report, g
+    act_max_mm: float = 0.0  #: the actuator's furthest position towards the sensor since that report, mm
+    drum_turn: float = 0.0  #: the real drum's revolutions (slip, a stall, a reversed motor included)
 
 
 @dataclass(frozen=True)
@@ -201,9 +209,14 @@ class HilRig:
         self.mega_resets = 0
         self._eeprom_ack: bool | None = None
         self.schedule: FaultSchedule | None = None  #: the injected faults (:meth:`inject_faults`)
+        self._power_on_pending = False  # inject_faults(power_on=True) before start(): applied as the Mega starts
+        #: the controller's own latches, from its RAM (the harness's ``STATE`` lines): [start_s, end_s or None] of
+        #: the Mega's simulated time, each span its state was FAULT (:attr:`latch_spans`)
+        self.latches: list[list[float | None]] = []
         self.faults = HilFaults(lambda c: self._running(self._mega, "Mega").send(c),
                                 None if not with_uno else lambda c: self._running(self._uno, "Uno").send(c), taxel_ohm,
-                                calibration_offset=self._calibration_offset)
+                                calibration_offset=self._calibration_offset,
+                                calibration_record=self._calibration_record)
         self.telemetry: Telemetry | None = None
         self.telemetry_history: collections.deque[Telemetry] = collections.deque(maxlen=400)
         #: the actuator's reversals as the motor turned (``AREV``): (t_s of the new direction's first step, dir 1 =
@@ -324,6 +337,10 @@ class HilRig:
         self.clock.start()
         record = default_record(int(m.loadcell_offset_counts))  # calibrated and tared on the unloaded cell
         calibrated = ["--eeprom-write", f"{self._calibration_offset()}:{record.hex()}"] if self.factory_calibrated else []
+        try:  # the controller's state byte: the harness reports each change (its latches, on the Mega's own clock)
+            calibrated += ["--state-addr", str(state_address(build_dir / f"{self.mega_image}.elf"))]
+        except EepromError:
+            log.warning("HIL: no controller state in %s: latches are not reported", self.mega_image)
         mega_boot = (["--reset-on-open", "--bootloader", str(build_dir / "stk500v2_mega.hex")] if self.bootloaders
                      else [])
         uno_boot = ["--bootloader", str(build_dir / "optiboot_uno.hex")] if self.bootloaders else []
@@ -332,6 +349,8 @@ class HilRig:
             "--counts-per-g", str(m.loadcell_counts_per_g), "--loadcell-offset", str(int(m.loadcell_offset_counts)),
             *self._hardware_args(), *lock, *calibrated], self._on_mega_line, self.clock)
         self.clock_file.board_port("mega", self._mega.port)  # on self.clock, its writes stamped
+        if self.schedule is not None and not self.schedule.armed:  # faults injected before the rig started
+            self.faults.start(self.schedule, self.clock.now(), power_on=self._power_on_pending)
         if not self.with_uno:
             return self
         try:
@@ -478,14 +497,30 @@ class HilRig:
         return self.faults.fault_refusal(spec)
 
     def inject_faults(self, specs: Sequence[FaultSpec], *, power_on: bool = False) -> FaultSchedule:
-        """Arm ``specs`` on the Mega's simulated time from now (:meth:`HilFaults.arm`; ``power_on``: FAULT@0)."""
-        self.schedule = self.faults.arm(specs, self.next_telemetry().t_s, power_on=power_on)
+        """Arm ``specs`` on the Mega's simulated time from now (:meth:`HilFaults.arm`; ``power_on``: FAULT@0). Before
+        :meth:`start` (a rig wired so from power-on: :func:`rigctl.rigs.open_rig`), the schedule is armed when the
+        Mega's harness starts, at its time 0, and the ``FAULT@0`` ones applied before its first instruction runs
+        on the host's grant: no wait at all."""
+        if self._mega is None:
+            self.schedule = self.faults.schedule(specs)
+            self._power_on_pending = power_on
+            return self.schedule
+        self.schedule = self.faults.arm(specs, self.clock.now(), power_on=power_on)
         return self.schedule
 
     def truth_start(self) -> None:
         """The run starts now (the Mega's simulated time): the truth log's time 0 (:mod:`rigctl.simulation.truth`)."""
         if self.truth is not None:
             self.truth.start(self.next_telemetry().t_s)
+
+    @property
+    def latch_spans(self) -> list[tuple[float, float | None]]:
+        """Each span the controller held a latched fault (its state FAULT, read from its RAM by the harness: the
+        instant it latched, to 0.1 ms, not when a host saw it), ``(start_s, end_s or None)``, on the truth log's clock
+        (s from its start; the Mega's simulated time without a truth log)."""
+        t0 = self.truth.t0_s if self.truth is not None and self.truth.t0_s is not None else 0.0
+        with self._cond:
+            return [(float(a or 0.0) - t0, None if b is None else float(b) - t0) for a, b in self.latches]
 
     def log_requests(self, on: bool = True) -> None:
         """Record the simulated time host bytes reach the Mega (:attr:`request_times`) and each actuator step
@@ -525,6 +560,17 @@ class HilRig:
         except EepromError as exc:
             raise HilError(str(exc)) from None
 
+    def _calibration_record(self, scale: float) -> bytes:
+        """The calibration record of this rig's true calibration with its scale ``scale`` times the true one (a wrong
+        calibration saved, its checksum valid: ``calibration-scale``)."""
+        from rigctl.devices.wire import HoldingRegister as HR
+        from rigctl.simulation.mega_eeprom import calibration_record
+
+        true_scale = wire.join_s32(*(wire.holding_range(r)[2] for r in (HR.LOADCELL_SCALE_X100_HI,
+                                                                          HR.LOADCELL_SCALE_X100_LO)))
+        return calibration_record(int(round(true_scale * scale)), wire.holding_range(HR.ACTUATOR_STEPS_PER_MM)[2],
+                                  int(self.config.mechanics.loadcell_offset_counts))
+
     def hang_loop(self) -> None:
         """Make the Mega's ``loop()`` hang until the MCU resets (only the test image ``mega_drum_test`` reacts: a
         hang input on D22, absent from the shipped image); its AVR watchdog must then reset it."""
@@ -551,11 +597,15 @@ class HilRig:
 
     def _wait_telemetry(self, t_min: float | None, timeout_s: float) -> Telemetry:
         """The next report (``t_min`` None) or the first at simulated time ``t_min`` or later; HilError if no report
-        comes for ``timeout_s`` of the rig's clock, or while the cores stand still for ``timeout_s`` of host time
-        although this host lives (grants them time: a harness that hangs)."""
+        comes for ``timeout_s`` of the rig's clock (while reports come, the wait goes on: the harness runs, however
+        slowly), or the Mega's harness has exited. Judged on the rig's clock only: a loaded machine slows the cores,
+        it never ends the wait (a harness that stands still while alive is waited for, as a starved one is; only
+        :data:`HARNESS_HANG_S` of wall time with the cores standing still although this host grants them time ends
+        it, as a hung process, never a verdict on the firmware)."""
         clock = self.clock
         deadline = clock.now() + timeout_s
         stuck_since, stuck_at = time.monotonic(), clock.now()
+        mega = self._running(self._mega, "Mega")
         with self._cond:
             start = seen = self.telemetry
             while True:
@@ -568,8 +618,13 @@ class HilRig:
                     deadline = now + timeout_s
                 if now != stuck_at:
                     stuck_since, stuck_at = time.monotonic(), now
-                if now >= deadline or time.monotonic() - stuck_since > timeout_s:
-                    raise HilError("no telemetry from the Mega harness")
+                if now >= deadline:
+                    raise HilError(f"no telemetry from the Mega harness in {timeout_s:g} s of its clock")
+                if mega.proc.poll() is not None:
+                    raise HilError(f"the Mega harness exited (status {mega.proc.returncode})")
+                if time.monotonic() - stuck_since > HARNESS_HANG_S:
+                    raise HilError(f"the Mega harness's core stood still {HARNESS_HANG_S:g} s of wall time while "
+                                   "granted time (a hung harness)")
                 clock.touch()  # a waiting host lives: the cores may run on
                 self._cond.wait(0.005)
 
@@ -579,7 +634,9 @@ class HilRig:
             kv = _parse_kv(line)
             tel = Telemetry(kv["t"], int(kv["cycle"]), int(kv["drum_steps"]), int(kv["act_steps"]), kv["act_mm"],
                             kv["force_g"], int(kv["index"]), time.monotonic(), bool(kv.get("en", 1)),
-                            int(kv.get("steps_disabled", 0)), int(kv.get("ee_writes", 0)))
+                            int(kv.get("steps_disabled", 0)), int(kv.get("ee_writes", 0)),
+                            kv.get("force_max_g", kv["force_g"]), kv.get("act_max_mm", kv["act_mm"]),
+                            kv.get("drum_turn", 0.0))
             with self._cond:
                 self.telemetry = tel
                 self.telemetry_history.append(tel)
@@ -587,9 +644,20 @@ class HilRig:
             if self.schedule is not None:
                 self.schedule.due(tel.t_s)
             if self.truth is not None and len(self.telemetry_history) > 1:
+                # the largest true force and the furthest actuator position since the previous report (a peak between
+                # reports is not lost), and the real drum's speed (its revolutions: a slip, a reversed motor)
                 prev = self.telemetry_history[-2]
                 dt = max((tel.cycle - prev.cycle) / 16e6, 1e-6)
-                self.truth.row(tel.t_s, tel.force_g, tel.act_mm, (tel.drum_steps - prev.drum_steps) * self.mm_per_step / dt)
+                circ = float(np.pi * self.config.drum.diameter_mm)
+                self.truth.row(tel.t_s, tel.force_max_g, tel.act_max_mm, (tel.drum_turn - prev.drum_turn) * circ / dt)
+        elif line.startswith("STATE "):
+            kv = _parse_kv(line)
+            faulted = int(kv["state"]) == int(wire.DrumState.FAULT)
+            with self._cond:
+                if faulted and (not self.latches or self.latches[-1][1] is not None):
+                    self.latches.append([kv["t"], None])
+                elif not faulted and self.latches and self.latches[-1][1] is None:
+                    self.latches[-1][1] = kv["t"]
         elif line.startswith("RX "):
             self.request_times.append(_parse_kv(line)["t"])
         elif line.startswith("ASTEP "):

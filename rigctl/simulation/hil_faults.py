@@ -4,7 +4,11 @@
 Each fault acts where the real one would, through the harness's stdin commands (arduino/simavr/rigctl_simavr.c): the
 e-stop contact, the reset pin, the load cell's sign, the actuator motor's coil pair, the host's USB link to the Mega,
 the taxels' source impedance, the HX711's SCK wire and its output (frozen), the contact's stiffness (a plate swap),
-the EEPROM (a brown-out while writing it). The schedule runs on the Mega's simulated time (its ``TEL`` reports). Commands are sent
+the EEPROM (a brown-out while writing it, a wrong calibration saved), the HX711's RATE pin and its DOUT wire (bit
+errors), the home switch's wire (stuck closed or open), the load cell's gain and zero, the actuator's coupling (a
+slip that catches up) and its lost steps, the drivers' EN input (stuck active), the drum motor's coil pair (the
+Uno's rendered taxels follow the drum's step count, not its reversed turn). The schedule runs on the Mega's simulated
+time (its ``TEL`` reports). Commands are sent
 without waiting for the harness's acknowledgement: they are applied from the thread that reads the harness's reports.
 """
 
@@ -29,16 +33,22 @@ _MEGA_COMMANDS: dict[str, tuple[str, str]] = {
     "stall": ("drum slip 1", "drum ok"),
     "hx711-sck-broken": ("hx711 sck-broken", "hx711 ok"),
     "hx711-frozen": ("hx711 frozen", "hx711 ok"),
+    "driver-enable-stuck": ("driver en-stuck", "driver ok"),
+    "hx711-10sps": ("hx711 rate 10", ""),
+    "reversed-drum": ("drum reversed", "drum forward"),
+}
+#: valued faults: name -> (the command's text for the value when it starts, the command when it ends)
+_VALUED: dict[str, tuple[Callable[[float], str], str]] = {
+    "home-switch": (lambda v: "homeswitch stuck" if v else "homeswitch broken", "homeswitch ok"),
+    "cell-gain": (lambda v: f"cell gain {v:g}", "cell gain 1"),
+    "cell-offset": (lambda v: f"cell offset {v:g}", "cell offset 0"),
+    "coupling-slip": (lambda v: f"coupling slip {v / 100.0:g}", "coupling slip 0"),
+    "steps-lost": (lambda v: f"steps lost {v / 100.0:g}", "steps lost 0"),
+    "hx711-dout-noise": (lambda v: f"hx711 dout-noise {v:g}", "hx711 dout-noise 0"),
 }
 
 #: faults the harness does not model, and why
-_REFUSED: dict[str, str] = {
-    "hx711-10sps": "the harness's HX711 rate is fixed when it starts (use a rig config with mechanics.hx711_rate_sps "
-                   "= 10)",
-    "taxel-link-drop": "the Uno's link cannot be cut in the harness (use --sim)",
-    "reversed-drum": "the taxels rendered for the Uno follow the Mega's drum steps, not a drum turning backwards "
-                     "(use --sim)",
-}
+_REFUSED: dict[str, str] = {}
 
 
 class HilFaults:
@@ -51,6 +61,8 @@ class HilFaults:
     taxel_ohm : the taxels' source impedance to restore when ``taxel-ohm`` ends, Ohm.
     calibration_offset : ``calibration_offset()`` is the calibration record's EEPROM address (``eeprom-corrupt``
         flips a byte of its scale; None: refused).
+    calibration_record : ``calibration_record(x)`` is the record (bytes) of the board's calibration with its scale
+        ``x`` times the true one, its checksum valid (``calibration-scale``; None: refused).
 
     Attributes
     ----------
@@ -58,20 +70,31 @@ class HilFaults:
     """
 
     def __init__(self, send_mega: Callable[[str], object], send_uno: Callable[[str], object] | None,
-                 taxel_ohm: float, *, calibration_offset: Callable[[], int] | None = None) -> None:
+                 taxel_ohm: float, *, calibration_offset: Callable[[], int] | None = None,
+                 calibration_record: Callable[[float], bytes] | None = None) -> None:
         self.send_mega, self.send_uno, self.taxel_ohm = send_mega, send_uno, float(taxel_ohm)
         self.calibration_offset = calibration_offset
+        self.calibration_record = calibration_record
         self.active: set[str] = set()
 
     def arm(self, specs: Sequence[FaultSpec], t0_s: float, *, power_on: bool = False) -> FaultSchedule:
         """A schedule of ``specs`` from the Mega's simulated ``t0_s``; ``power_on``: the ``FAULT@0`` ones applied now
         and the Mega powered on again with them (:class:`rigctl.core.faults.FaultInjector`)."""
-        schedule = FaultSchedule(specs, self.apply_fault)
+        schedule = self.schedule(specs)
+        self.start(schedule, t0_s, power_on=power_on)
+        return schedule
+
+    def schedule(self, specs: Sequence[FaultSpec]) -> FaultSchedule:
+        """A schedule of ``specs`` applied here, not yet armed (:meth:`start`)."""
+        return FaultSchedule(specs, self.apply_fault)
+
+    def start(self, schedule: FaultSchedule, t0_s: float, *, power_on: bool = False) -> None:
+        """Arm ``schedule`` from the Mega's simulated ``t0_s``; ``power_on``: its ``FAULT@0`` ones applied now and
+        the Mega powered on again with them."""
         schedule.start(t0_s)
         if power_on:
             schedule.due(t0_s)
             self.send_mega("poweron")
-        return schedule
 
     def fault_refusal(self, spec: FaultSpec) -> str | None:
         """Why the harness cannot model ``spec`` (None when it can)."""
@@ -79,8 +102,12 @@ class HilFaults:
             return _REFUSED[spec.name]
         if spec.name == "taxel-ohm" and self.send_uno is None:
             return "this HIL rig runs the Mega alone (no taxels)"
-        if spec.name == "eeprom-corrupt" and self.calibration_offset is None:
+        if spec.name in ("eeprom-corrupt", "calibration-scale") and self.calibration_offset is None:
             return "this HIL rig does not know where its Mega keeps the calibration"
+        if spec.name == "calibration-scale" and self.calibration_record is None:
+            return "this HIL rig cannot write its Mega's calibration"
+        if spec.name == "taxel-link-drop" and self.send_uno is None:
+            return "this HIL rig runs the Mega alone (no taxel link)"
         return None
 
     def apply_fault(self, spec: FaultSpec, active: bool) -> None:
@@ -92,6 +119,15 @@ class HilFaults:
             command = _MEGA_COMMANDS[name][0 if active else 1]
             if command:
                 self.send_mega(command)
+        elif name in _VALUED:
+            on, off = _VALUED[name]
+            self.send_mega(on(float(spec.value or 0.0)) if active else off)
+        elif name == "taxel-link-drop" and self.send_uno is not None:
+            self.send_uno("link down" if active else "link up")
+        elif name == "calibration-scale" and self.calibration_offset is not None and self.calibration_record:
+            # a wrong calibration saved (its checksum valid), then a power cycle: the firmware boots with it
+            record = self.calibration_record(float(spec.value or 1.0))
+            self.send_mega(f"eeprom-write {self.calibration_offset()}:{record.hex()}")
         elif name == "contact-stiffness":  # the plate swapped for one of this stiffness (the rig's own at the end)
             self.send_mega(f"spring-k {float(spec.value or 0):g}" if active else "spring-k default")
         elif name == "eeprom-corrupt" and self.calibration_offset is not None:

@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 #: the harness's commands it answers with ``OK <word>`` or ``ERR <word>`` (rigctl_simavr.c's stdin thread), by their
 #: first word
 ACKNOWLEDGED = frozenset({"bump", "estop", "hang", "homeswitch", "hx711", "spring-k", "actuator", "drum", "link",
-                          "polarity", "rxlog", "taxel_ohm", "taxel_aa", "wave"})
+                          "polarity", "rxlog", "taxel_ohm", "taxel_aa", "wave", "cell", "coupling", "steps", "driver"})
 
 
 class HilError(RuntimeError):

@@ -11,7 +11,8 @@ from pathlib import Path
 from rigctl.devices import wire
 from rigctl.devices.wire import HoldingRegister as HR, crc16
 
-__all__ = ["CALIBRATION_SYMBOL", "EepromError", "calibration_record", "default_record", "eeprom_offset"]
+__all__ = ["CALIBRATION_SYMBOL", "EepromError", "calibration_record", "default_record", "eeprom_offset",
+           "state_address"]
 
 #: the firmware 1.2 calibration record's EEMEM variable (with the tare's raw zero, spec 2.11)
 CALIBRATION_SYMBOL = "ee_calib3"
@@ -34,6 +35,25 @@ def eeprom_offset(elf: Path | str, symbol: str = CALIBRATION_SYMBOL) -> int:
     if m is None:
         raise EepromError(f"no {symbol} in {elf}")
     return int(m.group(1), 16) - _EEPROM_BASE
+
+
+#: avr-gcc places .data and .bss at this address (the data space's 0 is 0x800000 in the ELF)
+_SRAM_BASE = 0x800000
+
+
+def state_address(elf: Path | str) -> int:
+    """The data-space address of the controller's ``state`` byte in the Mega image (``mega_drum.cpp``'s ``static ctl_t
+    ctl``; ``state`` follows the ``hreg`` array of :data:`rigctl.devices.wire.N_HOLDING` 16-bit registers,
+    controller.h), from the image's symbol table (``avr-nm``): the harness's ``--state-addr``. Raises
+    :class:`EepromError`."""
+    try:
+        out = subprocess.run(["avr-nm", str(elf)], capture_output=True, text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError) as exc:
+        raise EepromError(f"cannot read the symbols of {elf}: {exc}") from None
+    m = re.search(r"^([0-9a-fA-F]+) [bBdD] (?:_ZL3ctl|ctl)(?:\.lto_priv\.\d+)?$", out, re.M)
+    if m is None:
+        raise EepromError(f"no controller (ctl) in {elf}")
+    return int(m.group(1), 16) - _SRAM_BASE + 2 * wire.N_HOLDING
 
 
 def calibration_record(scale_x100: int, actuator_steps_per_mm: int, zero_raw: int) -> bytes:

@@ -847,6 +847,23 @@ class RigModel:
         self.drum_slip = 0.0
         #: the drum motor's direction: -1 turns it backwards (a swapped coil pair: fault injection)
         self.drum_sign = 1
+        #: the load cell's signal against its calibration (cell-gain) and its zero's move, g (cell-offset)
+        self.loadcell_gain = 1.0
+        self.loadcell_offset_g = 0.0
+        #: the home switch: None works (closed at home), True stuck closed (its wire shorted), False never closes
+        self.home_switch_stuck: bool | None = None
+        #: the actuator's coupling slips this fraction of the motor's travel (wound up, caught up at once when the
+        #: motor has held still ACTUATOR_CATCHUP_MS) and the motor loses this fraction of its steps for good
+        self.actuator_slip = 0.0
+        self.actuator_lost = 0.0
+        self._windup_mm = 0.0
+        self._still_ms = 0
+        #: each bit the controller reads on the HX711's DOUT flips with this probability (hx711-dout-noise)
+        self.hx711_dout_noise = 0.0
+        self._hx_flip_mask = 0
+        #: the drivers' EN input stuck active (they drive whatever EN says): the physics moves as commanded; a
+        #: controller's commanded motion is what moves (the model's controller commands none while it disables them)
+        self.driver_enable_stuck = False
         self._motor_mm = 0.0  # the stepper's travel since construction, mm of surface (slip not included)
         #: of the last :meth:`advance`, per ms: the stepper's travel at its end (mm of surface, since construction)
         #: and whether a speed mark (``drum.marks_per_rev`` per revolution of the real drum) passed in it
@@ -928,8 +945,21 @@ class RigModel:
         with self._lock:
             if self._hx_frozen_raw is not None:
                 return self._hx_frozen_raw
-            raw = m.loadcell_offset_counts + self.loadcell_sign * int(round(self._loadcell_g * m.loadcell_counts_per_g))
-        return max(-(1 << 23), min((1 << 23) - 1, raw))
+            g = self._loadcell_g * self.loadcell_gain + self.loadcell_offset_g
+            raw = m.loadcell_offset_counts + self.loadcell_sign * int(round(g * m.loadcell_counts_per_g))
+            raw = max(-(1 << 23), min((1 << 23) - 1, raw))
+            if self._hx_flip_mask:  # DOUT bit errors: the 24 bits as read, two's complement
+                raw = ((raw & 0xFFFFFF) ^ self._hx_flip_mask)
+                raw = raw - (1 << 24) if raw & 0x800000 else raw
+        return raw
+
+    @property
+    def home_switch_closed(self) -> bool:
+        """The home switch as its wire reads: closed at home (actuator <= 0) unless stuck (:attr:`home_switch_stuck`)."""
+        with self._lock:
+            if self.home_switch_stuck is not None:
+                return bool(self.home_switch_stuck)
+            return self._actuator_mm <= 1e-6
 
     def freeze_hx711(self, frozen: bool) -> None:
         """Fault injection (``hx711-frozen``): the HX711's output freezes at its latest conversion's raw value (the
@@ -1062,6 +1092,9 @@ class RigModel:
             self._loadcell_g = float(np.dot(w, window)) + noise * float(self._rng.standard_normal())
             self._hx_last_s = self._hx_next_s
             self._hx_next_s += self._hx_period_s
+            p = self.hx711_dout_noise
+            self._hx_flip_mask = 0 if p <= 0 else int(
+                np.dot(self._rng.random(24) < p, 1 << np.arange(24, dtype=np.int64)))
             self._hx_conversions += 1
 
     def _read_step_consts(self) -> tuple:
@@ -1112,6 +1145,15 @@ class RigModel:
             stall_g = self.config.mechanics.actuator_stall_g
             if stall_g > 0 and va > 0:  # the driver's stall current: no further than where the spring carries stall_g
                 va = min(va, max(0.0, gap + stall_g / stiffness - self._actuator_mm) / (n * dt))
+            self._still_ms = self._still_ms + n if va == 0.0 else 0
+            if self._windup_mm and self._still_ms >= ACTUATOR_CATCHUP_MS:  # the coupling catches up: the screw jumps
+                self._actuator_mm = min(max(self._actuator_mm + self._windup_mm, 0.0), travel)
+                self._windup_mm = 0.0
+            if self.actuator_lost or self.actuator_slip:  # lost steps never return; a slip winds the coupling up
+                va *= 1.0 - min(1.0, max(0.0, self.actuator_lost))
+                slip = min(1.0, max(0.0, self.actuator_slip))
+                self._windup_mm += va * slip * n * dt
+                va *= 1.0 - slip
             # speed ramp, surface travel, index-mark passes, speed marks, actuator travel and contact force with the
             # runout and the texture ripple (SensorModel.contact_height), one ms after another
             # (rigctl.simulation.mechanics)
@@ -1153,6 +1195,9 @@ class RigModel:
 
 
 _HX_HISTORY_MS = 1024  # 4 conversion periods at 10 SPS with a 20 % slow oscillator fit
+#: a slipping coupling (RigModel.actuator_slip) catches up once the motor has held still this long, ms (the simavr
+#: harness's ACT_CATCHUP_MS)
+ACTUATOR_CATCHUP_MS = 20
 
 
 def sinc4_weights(period_ms: float) -> np.ndarray:

@@ -62,6 +62,8 @@ TRUTH_STEP_MS = 10
 #: how often the rig looks whether the faces holding its clock file are stopped processes, s of wall time (while
 #: their grant holds the world)
 STOPPED_LOOK_S = 0.1
+#: the world counts as held by the faces' grant when it is within this of it, s (the world steps in whole ms)
+HELD_AT_S = 0.002
 
 
 class SimulatedRig:
@@ -285,7 +287,7 @@ class SimulatedRig:
             self._clock_file.publish_in_flight(mega.request_on_its_way() or mega.reply_on_its_way(),
                                                self.uno.output_on_its_way())
             grant = self._clock_file.grant_s()
-            if grant < own and grant <= self.model.time_s and self._faces_stopped():
+            if grant < own and grant < self.model.time_s + HELD_AT_S and self._faces_stopped():
                 return own  # a stopped face holds nothing: the rig keeps a real controller's time (its watchdog)
             return min(own, grant)
         return own

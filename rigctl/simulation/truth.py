@@ -7,7 +7,9 @@ the moment the rig was open, the clock ``--inject`` times its faults on: the phy
 Mega's simulated time under simavr), ``true_force_g`` (the contact
 force on the load cell, g, not the HX711's delayed reading), ``actuator_mm`` (the actuator's real position from home,
 mm, + towards the sensor), ``drum_speed_mm_s`` (the drum's real surface speed, mm/s). One row per physics step of
-the simulated rig (<= 10 ms) or per report of the HIL harness (every 10 ms of simulated time): >= 100 Hz. The file is
+the simulated rig (<= 10 ms) or per report of the HIL harness (every 10 ms of simulated time, and at each change of
+the controller's state): >= 100 Hz; under simavr a row's force is the largest and its actuator position the furthest
+towards the sensor since the previous row (the harness watches them every 0.1 ms), so no peak between rows is lost. The file is
 flushed after every row: another process may read it while it grows (``rigctl sim --truth-log``), whole lines only.
 """
 
@@ -39,6 +41,11 @@ class TruthLog:
         self._lock = threading.Lock()
         self._t0: float | None = None
         self.rows = 0
+
+    @property
+    def t0_s(self) -> float | None:
+        """The physics clock's time of the run's start (None before :meth:`start`)."""
+        return self._t0
 
     def start(self, t0_s: float) -> None:
         """The run starts at the physics clock's ``t0_s`` (the first call wins); rows before it are not written."""

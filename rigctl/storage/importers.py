@@ -94,6 +94,7 @@ from rigctl.storage.recording_files import (
     read_recording_file,
 )
 from rigctl.storage.segmentation import Segmentation, SegmentSpec, outlier_warnings, parse_segment, segment
+from rigctl.storage.time_column import grid_text, onto_grid
 
 __all__ = [
     "RecordingImportError", "ImportedTrial", "ImportOptions", "FORMATS", "read_recording_file",
@@ -220,75 +221,32 @@ def resample(x: np.ndarray, rate_hz: float, resample_hz: float) -> tuple[np.ndar
     return y, step
 
 
-def onto_grid(x: np.ndarray, times_s: np.ndarray, rate_hz: float | None, where: str
-              ) -> tuple[np.ndarray, float, dict[str, Any]]:
-    """Readings stamped with their own times (a CSV's time column) onto an even grid at ``rate_hz`` (default: the
-    median spacing's rate), by linear interpolation per channel (``numpy.interp``) from the first stamp to the last.
-
-    Returns ``(readings on the grid, rate_hz, record)``; the record states the jitter (sd and largest deviation of
-    the spacing from 1/rate, ms) and names the gaps (spacings over 1.5 periods plus 6 sd of the jitter: samples
-    missing; start, length). Raises
-    RecordingImportError for times that do not increase (named: the first row) or fewer than two samples."""
-    t = np.asarray(times_s, np.float64)
-    if t.size < 2:
-        raise RecordingImportError(f"{where}: a time column needs two samples or more")
-    dt = np.diff(t)
-    bad = np.flatnonzero(~(dt > 0))
-    if bad.size:
-        raise RecordingImportError(f"{where}: the time column does not increase at row {int(bad[0]) + 1} "
-                                   f"({t[bad[0]]:g} then {t[bad[0] + 1]:g}): fix the file or give --time-column")
-    rate = float(rate_hz) if rate_hz else 1.0 / float(np.median(dt))
-    period = 1.0 / rate
-    n = int(np.floor((t[-1] - t[0]) * rate + 1e-9)) + 1
-    grid = t[0] + np.arange(n) / rate
-    y = np.empty((n, x.shape[1]), np.float64)
-    for c in range(x.shape[1]):
-        y[:, c] = np.interp(grid, t, x[:, c])
-    dev_ms = (dt - period) * 1e3
-    spread = 1.4826 * float(np.median(np.abs(dt - np.median(dt))))  # the jitter's sd, robust to the gaps themselves
-    gap_i = np.flatnonzero(dt > 1.5 * period + 6.0 * spread)
-    gaps = [{"at_s": float(t[i] - t[0]), "length_ms": float(dt[i] * 1e3)} for i in gap_i]
-    record = {"method": "linear interpolation (numpy.interp) onto an even grid", "rate_hz": rate,
-              "rate_from": "--rate" if rate_hz else "the median spacing of the time column",
-              "samples_in": int(t.size), "samples_out": n, "jitter_ms_sd": float(np.std(dev_ms)),
-              "jitter_ms_max": float(np.max(np.abs(dev_ms))), "gaps": gaps}
-    return y, rate, record
-
-
-def grid_text(name: str, record: Mapping[str, Any]) -> str:
-    """One line for the user: what :func:`onto_grid` did to one file."""
-    gaps = record["gaps"]
-    shown = ", ".join(f"{g['length_ms']:.1f} ms at {g['at_s']:.3f} s" for g in gaps[:3]) + (", ..." if len(gaps) > 3
-                                                                                          else "")
-    return (f"{name}: time column resampled onto the {record['rate_hz']:g} Hz grid ({record['rate_from']}; jitter sd "
-            f"{record['jitter_ms_sd']:.3f} ms, max {record['jitter_ms_max']:.3f} ms; "
-            + (f"{len(gaps)} gap(s) interpolated across: {shown})" if gaps else "no gaps)"))
-
-
 def to_counts(x: np.ndarray, adc_bits: int, *, volts_ref: float | None = None, scale: float = 1.0,
               offset: float = 0.0, clip: bool = False, where: str = "") -> tuple[np.ndarray, int]:
     """Readings -> ADC counts ``0 .. 2**adc_bits - 1`` (uint16).
 
     Volts (``volts_ref`` given): one count is ``volts_ref / 2**adc_bits`` V (the AVR ADC's ``ADC = Vin * 1024 /
-    VREF``, ATmega328P datasheet, "ADC Conversion Result"), ``rint(x / step)``, clipped. Counts:
-    ``rint(x * scale + offset)``;
-    values outside the range raise RecordingImportError unless ``clip`` (after resampling). Returns
-    ``(counts, n_clipped)``.
+    VREF``, ATmega328P datasheet, "ADC Conversion Result"), ``rint(x / step)``. Counts: ``rint(x * scale +
+    offset)``. Values outside the range (volts at or above the reference, a resampling's overshoot, another ADC's
+    counts) raise RecordingImportError naming how many, unless ``clip`` (``--clip``: pinned to the range and
+    counted; clipping loses information, so it is only done when asked for by name). Returns ``(counts, n_clipped)``.
     """
     adc_max = (1 << int(adc_bits)) - 1
     if volts_ref is not None:
         if not volts_ref > 0:
             raise RecordingImportError(f"--volts-ref must be > 0, got {volts_ref}")
         y = np.rint(np.asarray(x, np.float64) / volts_step(float(volts_ref), adc_bits))
-        clip = True
     else:
         y = np.rint(np.asarray(x, np.float64) * float(scale) + float(offset))
     bad = (y < 0) | (y > adc_max)
     n_bad = int(bad.sum())
     if n_bad and not clip:
+        what = f"volts {np.asarray(x).min():g}..{np.asarray(x).max():g} (--volts-ref {volts_ref:g} V)" \
+            if volts_ref is not None else f"values {y.min():g}..{y.max():g}"
         raise RecordingImportError(
-            f"{where}: values {y.min():g}..{y.max():g} are outside the {adc_bits}-bit ADC range 0..{adc_max}: give "
-            "the right --bits, --volts-ref for volts, or scale/offset in the mapping")
+            f"{where}: {what}: {n_bad} of {y.size} values are outside the {adc_bits}-bit ADC range 0..{adc_max}: "
+            "give the right --bits, --volts-ref for volts, or scale/offset in the mapping; or --clip to pin them "
+            "to the range (counted)")
     return np.clip(y, 0, adc_max).astype(np.uint16), n_bad
 
 
@@ -335,7 +293,7 @@ MAX_MAPPING_BYTES = 16 << 20
 #: keys a TOML mapping may hold (module docstring)
 MAPPING_KEYS = ("rate_hz", "channels", "layout", "sensor", "adc_bits", "volts_ref", "scale", "offset",
                 "label_pattern", "resample_hz", "segment", "align", "pre_ms", "min_swing", "nan", "variable", "columns",
-                "time_column", "defaults", "files", "texture_set")
+                "time_column", "time_unit", "repeated_stamps", "clip", "defaults", "files", "texture_set")
 
 
 def _resolve_layout(n_channels: int, rate_hz: float, *, channels: int | None, layout: str | None,
@@ -435,20 +393,10 @@ def write_session(out: str | os.PathLike[str], plan: Sequence[Mapping[str, Any]]
         raise SessionWriteError(f"{text}; the partial output was removed (an import is written whole or not at "
                                 "all): free space and run the import again", exc.errno, []) from None
     finally:
-        writer.close()
-        if not done:  # a full disk, Ctrl-C, a file refused mid-way: no partial or empty session left behind
-            _remove_partial(Path(out))
-
-
-def _remove_partial(path: Path) -> None:
-    """Remove an import's unfinished output and its writer's side files (the lock, a journal)."""
-    import contextlib
-
-    from rigctl.storage import journal
-
-    for p in (path, journal.journal_path(path), journal.lock_path(path)):
-        with contextlib.suppress(OSError):
-            p.unlink()
+        if done:
+            writer.close()
+        else:  # a full disk, Ctrl-C, a file refused mid-way: the file this import made is removed (only it: an
+            writer.discard()  # --overwrite's old session stays, rigctl.storage.sidecars)
 
 
 @dataclass(frozen=True)
@@ -477,6 +425,12 @@ class ImportOptions:
     variable: str | None = None
     columns: Sequence[Any] | None = None
     time_column: Any = None
+    #: the time column's unit (``s``, ``ms``, ``us``, ``ns``; None: its name's, rigctl.storage.time_column)
+    time_unit: str | None = None
+    #: repeated time stamps: "refuse" or "keep-first" (the rows dropped counted in the import steps)
+    repeated_stamps: str = "refuse"
+    #: values outside the ADC range are pinned to it (counted, said) instead of refused
+    clip: bool = False
     per_file: Mapping[str, Any] = field(default_factory=dict)
     defaults: Mapping[str, Any] = field(default_factory=dict)
     texture_set: Mapping[str, Any] | None = None
@@ -512,6 +466,8 @@ class ImportOptions:
                    scale=float(1.0 if scale is None else scale), offset=float(0.0 if offset is None else offset),
                    mapped=scale is not None or offset is not None or pick("volts_ref") is not None,
                    variable=pick("variable"), columns=pick("columns"), time_column=pick("time_column"),
+                   time_unit=pick("time_unit"), repeated_stamps=pick("repeated_stamps", "refuse"),
+                   clip=bool(pick("clip", False)),
                    per_file=m.get("files", {}) or {}, defaults=defaults, texture_set=m.get("texture_set"))
 
     def value_scale(self, n_clipped: int) -> dict[str, Any]:
@@ -559,14 +515,15 @@ class _Import:
     n_ch: int | None = None
     n_clipped: int = 0
     sensor_from_file: Mapping[str, Any] | None = None  # an NWB file's own sensor description (rigctl exports it)
-    regridded: bool = False  # a time column put a file onto the rate grid (interpolated values: clipped, counted)
+    regridded: bool = False  # a time column put a file onto the rate grid (linear interpolation: no overshoot)
 
     def add_file(self, path: Path, rx: re.Pattern[str] | None) -> None:
         """Read, label, resample, scale and segment one file; its trials join :attr:`trials`."""
         o = self.opts
         blocks, file_rate, meta = read_recording_file(path, channels=o.channels, variable=o.variable,
                                                       columns=o.columns, time_column=o.time_column, nan=o.nan,
-                                                      whole_counts=o.volts_ref is None and not o.mapped)
+                                                      whole_counts=o.volts_ref is None and not o.mapped,
+                                                      time_unit=o.time_unit)
         src_rate = float(o.rate_hz) if o.rate_hz is not None else file_rate
         if src_rate is None and "time_s" in meta:
             src_rate = 0.0  # from the time column (onto_grid)
@@ -585,7 +542,8 @@ class _Import:
         times = meta.pop("time_s", None)
         self.regridded = times is not None
         if times is not None:
-            blocks[0], src_rate, grid = onto_grid(blocks[0], times, o.rate_hz, str(path))
+            blocks[0], src_rate, grid = onto_grid(blocks[0], times, o.rate_hz, str(path),
+                                                  unit=meta["time_column"]["unit"], repeated=o.repeated_stamps)
             meta["time_grid"] = grid
             self.notes.append(grid_text(path.name, grid))
             self.regridded = True
@@ -629,8 +587,11 @@ class _Import:
         elif not math.isclose(self.out_rate, rate, rel_tol=1e-9):
             raise RecordingImportError(f"{path}: {rate:g} Hz, earlier files are {self.out_rate:g} Hz: give --resample")
         counts, clipped = to_counts(x, o.adc_bits, volts_ref=o.volts_ref, scale=o.scale, offset=o.offset,
-                                    clip=bool(o.resample_hz) or self.regridded, where=str(path))
+                                    clip=o.clip, where=str(path))
         self.n_clipped += clipped
+        if clipped:  # asked for by name (--clip), and said
+            self.notes.append(f"{path.name}: {clipped} of {counts.size} values clipped to the {o.adc_bits}-bit range "
+                              f"0..{(1 << o.adc_bits) - 1} (--clip)")
         return counts
 
     def _add_block(self, path: Path, bi: int, n_blocks: int, counts: np.ndarray, labels: dict[str, Any],

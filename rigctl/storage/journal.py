@@ -29,8 +29,11 @@ is complete on disk before the first in-place write).
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import io
 import os
+import stat
 import struct
 import sys
 import time
@@ -44,7 +47,7 @@ try:  # POSIX; elsewhere (Windows) rigctl writers do not lock out HDF5 readers
 except ImportError:  # pragma: no cover
     fcntl = None  # type: ignore[assignment]
 
-from rigctl.storage import journal_replay
+from rigctl.storage import journal_replay, sidecars
 from rigctl.storage.journal_replay import (
     COMMIT as _COMMIT,
     MAGIC as _MAGIC,
@@ -108,69 +111,128 @@ class WriterLock:
     locks belong to an open file, not to a process), raises :class:`WriterLockHeld` at once, naming the holder's
     pid. The lock file is a sidecar, not the data file, because HDF5 readers take their own (shared) flock on the
     data file and must keep opening it between the writer's commits. The kernel drops the lock when the holder
-    dies (``kill -9`` included); a lock file left by a killed writer is empty of meaning and is simply locked again
-    by the next writer. :meth:`release` deletes the file (while still holding the lock; a writer that locked the
-    deleted file meanwhile notices and locks the new one).
+    dies (``kill -9`` included). The lock file is a sidecar (:mod:`rigctl.storage.sidecars`): created with
+    ``O_EXCL | O_NOFOLLOW`` in the folder's descriptor; one a killed writer left (a regular file of one link holding
+    a pid, nobody holding it) is removed and made again; a link or any other file at its name is refused
+    (:class:`rigctl.storage.sidecars.SidecarExists`) and left as it is. :meth:`release` deletes the file only if its
+    name still holds the one this lock made (while still holding the lock; a writer that locked the deleted file
+    meanwhile notices and locks the new one).
 
     Raises
     ------
-    WriterLockHeld (a :class:`FileBusy`, an OSError) if another writer holds it; OSError if the lock file cannot be
-    created (a read-only folder, ...).
+    WriterLockHeld (a :class:`FileBusy`, an OSError) if another writer holds it; SidecarExists (a usage error) for a
+    link or a foreign file at ``<name>.lock``; OSError if the lock file cannot be created (a read-only folder, ...).
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         self.lock_path = lock_path(self.path)
         self._fd: int | None = None
+        self._dir_fd = -1
+        self._stat: os.stat_result | None = None
         if fcntl is None:  # pragma: no cover - no flock here: no lock
             return
-        for _ in range(100):  # retried only if the lock file is deleted under us by a releasing writer
-            fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT | _O_BINARY | getattr(os, "O_CLOEXEC", 0), 0o644)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                pid = _read_pid(fd)
-                os.close(fd)
-                who = ("another writer in this process" if pid == os.getpid() else
-                       f"another process (pid {pid})" if pid else "another process")
-                raise WriterLockHeld(f"{self.path} is being written by {who}: one writer per session file; "
-                                     "wait for it to finish (or stop it) and try again", pid) from None
-            except BaseException:
-                os.close(fd)
+        self._dir_fd = sidecars.folder_fd(self.lock_path.parent)
+        try:
+            for _ in range(100):  # retried when the lock file is deleted under us (released, or stale and removed)
+                if self._try_lock():
+                    return
+            raise FileBusy(f"{self.lock_path} keeps being replaced; cannot lock {self.path}")  # pragma: no cover
+        except BaseException:
+            os.close(self._dir_fd)
+            self._dir_fd = -1
+            raise
+
+    def _open(self) -> tuple[int, bool] | None:
+        """The lock file's descriptor and whether this call created it (``O_EXCL | O_NOFOLLOW`` in the folder's
+        descriptor); an existing one is opened without following, creating or truncating it. None: it vanished
+        between the two (retry). :class:`rigctl.storage.sidecars.SidecarExists` for a link or a non-file."""
+        name, flags = self.lock_path.name, os.O_RDWR | _O_BINARY | sidecars.CLOEXEC | sidecars.NOFOLLOW
+        try:
+            return os.open(name, flags | os.O_CREAT | os.O_EXCL, 0o644, dir_fd=self._dir_fd), True
+        except FileExistsError:
+            pass
+        try:
+            fd = os.open(name, flags | os.O_NONBLOCK, dir_fd=self._dir_fd)
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            if exc.errno != errno.ELOOP:
                 raise
-            try:
-                same = os.path.samestat(os.fstat(fd), os.stat(self.lock_path))
-            except FileNotFoundError:
-                same = False
-            if not same:  # we locked a lock file its releasing holder had just deleted: lock the current one
-                os.close(fd)
-                continue
-            self._fd = fd
-            try:  # the holder's pid, for the message a second writer gets (best effort: the disk may be full)
-                os.ftruncate(fd, 0)
-                _pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-            except OSError:
-                pass
-            return
-        raise FileBusy(f"{self.lock_path} keeps being replaced; cannot lock {self.path}")  # pragma: no cover
+            raise self._not_ours("a symlink") from None
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            raise self._not_ours("not a regular file")
+        return fd, False
+
+    def _not_ours(self, what: str) -> sidecars.SidecarExists:
+        return sidecars.SidecarExists(f"{self.lock_path} is {what}, not a lock file of rigctl's: it was left as it "
+                                      f"is; move it away to write {self.path.name}")
+
+    def _try_lock(self) -> bool:
+        opened = self._open()
+        if opened is None:
+            return False
+        fd, created = opened
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            pid = _read_pid(fd)
+            os.close(fd)
+            who = ("another writer in this process" if pid == os.getpid() else
+                   f"another process (pid {pid})" if pid else "another process")
+            raise WriterLockHeld(f"{self.path} is being written by {who}: one writer per session file; "
+                                 "wait for it to finish (or stop it) and try again", pid) from None
+        except BaseException:
+            os.close(fd)
+            raise
+        name = self.lock_path.name
+        if not created:  # an existing lock file nobody holds: a killed writer's is made again, anything else kept
+            stale = sidecars.stale_lock(name, self._dir_fd, fd)
+            if stale:
+                with contextlib.suppress(OSError):
+                    os.unlink(name, dir_fd=self._dir_fd)
+            os.close(fd)
+            if not stale:
+                raise self._not_ours("a file of another program (not a pid)")
+            return False
+        try:
+            st = os.fstat(fd)
+            same = os.path.samestat(st, os.stat(name, dir_fd=self._dir_fd, follow_symlinks=False))
+        except FileNotFoundError:
+            same = False
+        if not same:  # another writer took ours for stale before we locked it: lock the current one
+            os.close(fd)
+            return False
+        self._fd, self._stat = fd, st
+        try:  # the holder's pid, for the message a second writer gets (best effort: the disk may be full)
+            _pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError:
+            pass
+        return True
 
     @property
     def held(self) -> bool:
         return self._fd is not None
 
     def release(self) -> None:
-        """Delete the lock file and drop the lock (idempotent)."""
+        """Delete the lock file (only if its name still holds the file this lock created) and drop the lock
+        (idempotent)."""
         fd, self._fd = self._fd, None
+        dfd, self._dir_fd = self._dir_fd, -1
         if fd is None:
+            if dfd >= 0:
+                os.close(dfd)
             return
         try:
-            try:
-                self.lock_path.unlink()
-            except OSError:
-                pass
+            with contextlib.suppress(OSError):
+                here = os.stat(self.lock_path.name, dir_fd=dfd, follow_symlinks=False)
+                if self._stat is not None and os.path.samestat(here, self._stat):
+                    os.unlink(self.lock_path.name, dir_fd=dfd)
             fcntl.flock(fd, fcntl.LOCK_UN)  # also drops it for a forked child that shares the descriptor
         finally:
             os.close(fd)
+            os.close(dfd)
 
     def __del__(self) -> None:  # pragma: no cover - best effort when the owner was not closed
         try:
@@ -202,7 +264,10 @@ def recover(path: str | os.PathLike[str], *, wait_s: float = 10.0) -> bool:
     Raises :class:`FileBusy` if another process holds the file.
     """
     jpath = journal_path(path)
-    if not jpath.exists():
+    try:
+        if not stat.S_ISREG(os.lstat(jpath).st_mode):
+            return False  # a link or a non-file at the journal's name is never read (nor replayed, nor removed)
+    except FileNotFoundError:
         return False
     fd = os.open(path, os.O_RDWR | _O_BINARY)
     try:
@@ -420,6 +485,7 @@ class OverlayFile(io.RawIOBase):
             if stop > start:
                 inplace.append((start, memoryview(self._pages[i])[: stop - start]))
         jpath = journal_path(self.path)
+        made_journal = False
         try:
             if size > base:  # new bytes first: nothing on disk refers to them yet
                 with memoryview(self._tail) as tail:
@@ -434,7 +500,13 @@ class OverlayFile(io.RawIOBase):
                 body += struct.pack("<I", zlib.crc32(body)) + _COMMIT
                 if self.durable:
                     os.fsync(self._fd)  # the fresh pages are on disk before the journal can point at them
-                jfd = os.open(jpath, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | _O_BINARY, 0o644)
+                try:  # a sidecar: created new, never a file or link already there (rigctl.storage.sidecars)
+                    jfd = os.open(jpath, os.O_WRONLY | os.O_CREAT | os.O_EXCL | sidecars.NOFOLLOW | _O_BINARY
+                                  | sidecars.CLOEXEC, 0o644)
+                except FileExistsError:
+                    raise OSError(errno.EEXIST, f"{jpath} exists and is not this commit's journal (left as it is: "
+                                                "move it away)") from None
+                made_journal = True
                 try:
                     _pwrite(jfd, bytes(body), 0)
                     if self.durable:
@@ -442,7 +514,8 @@ class OverlayFile(io.RawIOBase):
                 finally:
                     os.close(jfd)
         except OSError:  # e.g. ENOSPC: nothing refers to the new bytes and the journal has no commit mark yet,
-            self._undo_partial_commit(jpath, base)  # so the file is the old one: give the space back
+            self._undo_partial_commit(jpath if made_journal else None, base)  # so the file is the old one: give
+            # the space back
             raise
         if inplace or size < base:
             # the in-place writes, by a detached helper (which truncates and, if durable, fsyncs)
@@ -456,10 +529,10 @@ class OverlayFile(io.RawIOBase):
         self._tail_len = 0
         self._base_size = self._zero_from = size
 
-    def _undo_partial_commit(self, jpath: Path, base: int) -> None:
+    def _undo_partial_commit(self, jpath: Path | None, base: int) -> None:
         """After a failed write before the journal's commit mark: drop the uncommitted journal and the bytes written
         past the old end of the file (best effort; both are ignored by readers anyway)."""
-        undos: tuple[Callable[[], None], ...] = (lambda: jpath.unlink(missing_ok=True),
+        undos: tuple[Callable[[], None], ...] = ((lambda: jpath.unlink(missing_ok=True)) if jpath else lambda: None,
                                                  lambda: os.ftruncate(self._fd, base))
         for undo in undos:
             try:

@@ -39,10 +39,12 @@ from pathlib import Path
 from typing import Any
 
 from rigctl.storage import journal
+from rigctl.storage.sidecars import OutputError, Sidecar
 
 __all__ = ["HDF5_SUFFIXES", "OutputError", "OutputLocked", "OutputWriteError", "GuardedFile", "OutputTarget", "check_output",
            "check_replaceable", "check_space", "check_writable_folder", "current_umask", "apply_umask",
-           "existing_kind", "figure_metadata", "free_bytes", "name_in_folder", "output_file", "place_in_folder", "replacing", "same_file",
+           "existing_kind", "figure_metadata", "free_bytes", "name_in_folder", "opened_in_folder", "output_file", "place_in_folder",
+           "replacing", "same_file",
            "size_text", "CURVES_CSV_HEADER", "FIGURE_MARK", "MODEL_META_NAME", "OUTPUT_KINDS"]
 
 #: the kinds of rigctl output :func:`existing_kind` recognises (``check_output(kind=)``), with their names in messages
@@ -73,15 +75,6 @@ HDF5_SUFFIXES = (".h5", ".hdf5")
 
 #: overlay page of :class:`GuardedFile` once the disk has refused a write, bytes
 _PAGE = 1 << 16
-
-
-class OutputError(ValueError):
-    """An output refused before any work (exists, is an input, unknown format, no folder, no space): a usage
-    error, shown as one line. ``option`` is the option that named the output."""
-
-    def __init__(self, message: str, option: str = "--out") -> None:
-        super().__init__(message)
-        self.option = option
 
 
 class OutputLocked(OutputError):
@@ -330,22 +323,16 @@ def name_in_folder(folder: str | os.PathLike[str], name: str, *, option: str = "
     return full
 
 
-def place_in_folder(folder: str | os.PathLike[str], name: str, *, option: str = "out", create: bool = False) -> Path:
-    """The file ``name`` inside ``folder`` as :func:`name_in_folder` gives it, checked again on the disk as it is now,
-    without following a link: each subfolder of ``name`` is opened with ``O_NOFOLLOW`` from the one before it
-    (``openat``), so a subfolder that is a symlink, even one leading back inside, is refused, as is a ``name`` that
-    is itself a symlink; ``create``: missing subfolders are made (``mkdir`` in the folder opened, mode 0777 less the
-    umask). The path returned holds no link and reaches the folders that were opened (compared by inode).
-
-    For a name given earlier and used later (``rigctl serve``'s queued runs: checked at submit and again as the run
-    starts). Raises OutputError naming the rule broken or the subfolder at fault."""
-    full = name_in_folder(folder, name, option=option)
-    base = Path(folder).resolve()
+def _walk_subfolders(folder: str | os.PathLike[str], name: str, *, option: str,
+                     create: bool) -> tuple[int | None, list[str], list[str]]:
+    """Open each subfolder of ``name`` inside ``folder`` with ``O_NOFOLLOW`` from the one before it (``openat``; made
+    when missing and ``create``): ``(descriptor of the last one, or None when one is missing and not made, the
+    subfolders walked, every part of name)``. OutputError naming a link, a file or an unreadable subfolder."""
     parts = [part for part in Path(name).parts if part not in ("", ".")]
     nofollow = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
-    fd = os.open(base, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_CLOEXEC", 0))
+    fd = os.open(Path(folder).resolve(), os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_CLOEXEC", 0))
+    walked: list[str] = []
     try:
-        walked: list[str] = []
         for part in parts[:-1]:
             here = "/".join([*walked, part])
             try:
@@ -353,7 +340,8 @@ def place_in_folder(folder: str | os.PathLike[str], name: str, *, option: str = 
                     sub = os.open(part, nofollow, dir_fd=fd)
                 except FileNotFoundError:
                     if not create:
-                        return full  # nothing further exists: no link to follow (made when the run starts)
+                        os.close(fd)
+                        return None, walked, parts  # nothing further exists: no link to follow
                     with contextlib.suppress(FileExistsError):
                         os.mkdir(part, 0o777, dir_fd=fd)
                     sub = os.open(part, nofollow, dir_fd=fd)
@@ -363,13 +351,38 @@ def place_in_folder(folder: str | os.PathLike[str], name: str, *, option: str = 
                 raise OutputError(f"{option} {name}: {here} in the data folder {why}", option) from None
             os.close(fd)
             fd, walked = sub, [*walked, part]
-        try:
-            st = os.stat(parts[-1], dir_fd=fd, follow_symlinks=False)
-        except FileNotFoundError:
-            st = None
-        if st is not None and stat.S_ISLNK(st.st_mode):
+        if stat.S_ISLNK(_lstat_at(parts[-1], fd)):
             raise OutputError(f"{option} {name}: it is a symlink: a session is written only as a file of its own",
                               option)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd, walked, parts
+
+
+def _lstat_at(name: str, dir_fd: int) -> int:
+    """``name``'s mode in ``dir_fd`` (not following a link), 0 when there is nothing."""
+    try:
+        return os.stat(name, dir_fd=dir_fd, follow_symlinks=False).st_mode
+    except FileNotFoundError:
+        return 0
+
+
+def place_in_folder(folder: str | os.PathLike[str], name: str, *, option: str = "out", create: bool = False) -> Path:
+    """The file ``name`` inside ``folder`` as :func:`name_in_folder` gives it, checked again on the disk as it is now,
+    without following a link: each subfolder of ``name`` is opened with ``O_NOFOLLOW`` from the one before it
+    (``openat``), so a subfolder that is a symlink, even one leading back inside, is refused, as is a ``name`` that
+    is itself a symlink; ``create``: missing subfolders are made (``mkdir`` in the folder opened, mode 0777 less the
+    umask). The path returned holds no link and reaches the folders that were opened (compared by inode).
+
+    For a name given earlier and checked (``rigctl serve``'s queued runs, at submit); a run writes through
+    :func:`opened_in_folder`. Raises OutputError naming the rule broken or the subfolder at fault."""
+    full = name_in_folder(folder, name, option=option)
+    base = Path(folder).resolve()
+    fd, walked, parts = _walk_subfolders(folder, name, option=option, create=create)
+    if fd is None:
+        return full
+    try:
         parent = base.joinpath(*walked)
         try:
             same = os.path.samestat(os.stat(parent), os.fstat(fd))
@@ -380,6 +393,27 @@ def place_in_folder(folder: str | os.PathLike[str], name: str, *, option: str = 
     finally:
         os.close(fd)
     return base.joinpath(*parts)
+
+
+@contextlib.contextmanager
+def opened_in_folder(folder: str | os.PathLike[str], name: str, *, option: str = "out") -> Iterator[Path]:
+    """The file ``name`` inside ``folder`` (the rules of :func:`place_in_folder`, subfolders made), as a path that
+    reaches it through a descriptor of its subfolder opened now and held for the block: ``/proc/<pid>/fd/<n>/<leaf>``
+    (Linux). Whatever is renamed or linked by name meanwhile (a subfolder flipped to a symlink), every open, create
+    and rename through it lands in the folder that was checked: nothing is checked by name and then opened by name.
+    Where /proc is missing, the checked path by name. OutputError as :func:`place_in_folder`."""
+    name_in_folder(folder, name, option=option)
+    fd, walked, parts = _walk_subfolders(folder, name, option=option, create=True)
+    assert fd is not None
+    try:
+        via = Path(f"/proc/{os.getpid()}/fd/{fd}")
+        try:
+            reached = os.path.samestat(os.stat(via), os.fstat(fd))
+        except OSError:
+            reached = False
+        yield (via if reached else Path(folder).resolve().joinpath(*walked)) / parts[-1]
+    finally:
+        os.close(fd)
 
 
 def _check_unlocked(p: Path, option: str) -> None:
@@ -454,12 +488,14 @@ class GuardedFile(io.RawIOBase):
     0666 minus the umask.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, what: str | None = None) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, what: str | None = None, fd: int | None = None) -> None:
         super().__init__()
         self.path = Path(path)
         self.what = what or str(self.path)
-        self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_TRUNC | getattr(os, "O_BINARY", 0)
-                           | getattr(os, "O_CLOEXEC", 0), 0o666)
+        # ``fd``: the empty file a Sidecar created (never a file opened by name; the guard closes its own copy)
+        self._fd = os.dup(fd) if fd is not None else os.open(
+            self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_BINARY", 0)
+            | getattr(os, "O_CLOEXEC", 0), 0o666)
         self._pos = 0
         self._size = 0
         self._disk_size = 0  # bytes from 0 that are on disk (as written; beyond: zeros or the overlay)
@@ -592,17 +628,24 @@ def _write_error(exc: OSError, what: str) -> OutputWriteError:
 
 
 class OutputTarget:
-    """What :func:`output_file` yields: ``part`` (write here), ``path`` (the final name); :meth:`h5_file` opens
-    the part file for h5py through a :class:`GuardedFile`, :meth:`check` raises a refused write."""
+    """What :func:`output_file` yields: ``part`` (the part file's name, created empty by this process:
+    :class:`rigctl.storage.sidecars.Sidecar`), ``path`` (the final name); :meth:`h5_file` gives the part file to
+    h5py through a :class:`GuardedFile`, :meth:`adopt` takes a file made beside it as the part file, :meth:`check`
+    raises a refused write."""
 
-    def __init__(self, path: Path, part: Path) -> None:
-        self.path, self.part = path, part
+    def __init__(self, path: Path, sidecar: Sidecar) -> None:
+        self.path, self.sidecar = path, sidecar
+        self.part = sidecar.path
         self.guard: GuardedFile | None = None
 
     def h5_file(self) -> GuardedFile:
         """The part file as a :class:`GuardedFile` (created, empty) for ``h5py.File(target.h5_file(), "w")``."""
-        self.guard = GuardedFile(self.part, what=str(self.path))
+        self.guard = GuardedFile(self.part, what=str(self.path), fd=self.sidecar.fd)
         return self.guard
+
+    def adopt(self, made: str | os.PathLike[str]) -> None:
+        """Take ``made`` (a file this process made in the output's folder) as the part file (renamed over it)."""
+        self.sidecar.adopt(Path(made).name)
 
     def check(self) -> None:
         if self.guard is not None:
@@ -610,18 +653,30 @@ class OutputTarget:
 
 
 def _finish(target: OutputTarget) -> None:
-    """fsync and rename the part file over the target, mode per the umask."""
+    """fsync and rename the part file over the target (within the folder's descriptor), mode per the umask."""
+    side = target.sidecar
     if target.guard is not None:
         target.guard.sync()
         target.guard.close()
-    elif target.part.exists():
+    try:
+        fd = os.open(side.name, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0),
+                     dir_fd=side.dir_fd)
+    except OSError:
+        fd = -1
+    if fd < 0 or not side.holds(fd):
+        if fd >= 0:
+            os.close(fd)
+        side.require_ours()  # SidecarExists: replaced by someone else; nothing renamed, nothing removed
+        raise OutputWriteError(errno.EIO, f"{side.path} cannot be reopened to be made durable")
+    try:
         try:
-            with open(target.part, "rb+") as fh:
-                os.fsync(fh.fileno())
-        except OSError as exc:
-            raise _write_error(exc, str(target.path)) from None
-    apply_umask(target.part)
-    os.replace(target.part, target.path)
+            os.fsync(fd)
+            os.fchmod(fd, 0o666 & ~current_umask())
+        finally:
+            os.close(fd)
+    except OSError as exc:
+        raise _write_error(exc, str(target.path)) from None
+    side.commit_to(target.path.name)
 
 
 @contextlib.contextmanager
@@ -645,12 +700,15 @@ def output_file(path: str | os.PathLike[str], *, overwrite: bool = False, part_s
         raise OutputLocked(f"{option} {p}: {exc}", option) from None
     except OSError as exc:
         raise _write_error(exc, str(p)) from None
-    part = p.with_name(p.name + part_suffix)
-    target = OutputTarget(p, part)
+    target: OutputTarget | None = None
     try:
         if p.exists() and not overwrite:
             raise FileExistsError(f"{p} exists (pass overwrite=True / --overwrite to replace it)")
         check_replaceable(p, kind=kind, option=option)
+        try:  # the part file: created new (O_EXCL | O_NOFOLLOW in the folder's descriptor), a user's never touched
+            target = OutputTarget(p, Sidecar(p.with_name(p.name + part_suffix), what="part file", option=option))
+        except OSError as exc:
+            raise _write_error(exc, str(p)) from None
         try:
             yield target
             target.check()
@@ -662,10 +720,10 @@ def output_file(path: str | os.PathLike[str], *, overwrite: bool = False, part_s
                 raise _write_error(exc, str(p)) from None
             raise
     finally:
-        if target.guard is not None:
-            target.guard.close()
-        with contextlib.suppress(OSError):
-            part.unlink()
+        if target is not None:
+            if target.guard is not None:
+                target.guard.close()
+            target.sidecar.discard()  # removed only if it is still the file this process made
         lock.release()
 
 
@@ -682,7 +740,7 @@ def replacing(path: str | os.PathLike[str], *, overwrite: bool = True, kind: str
     try:
         with output_file(p, overwrite=overwrite, kind=kind, option=option) as target:
             yield Path(tmp)
-            os.replace(tmp, target.part)
+            target.adopt(tmp)
     finally:
         with contextlib.suppress(OSError):
             os.unlink(tmp)

@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from rigctl.storage.time_column import TIME_UNITS, TimeColumnError, rising_counter, unit_of_name
+
 __all__ = ["RecordingImportError", "FORMATS", "NAN_POLICIES", "read_recording_file", "fill_nan", "check_whole_counts"]
 
 #: extension -> format name
@@ -56,7 +58,6 @@ def _as_blocks(arr: np.ndarray, channels: int | None, where: str) -> list[np.nda
     return [_orient(arr, channels, where)]
 
 
-_TIME_NAME = re.compile(r"^(time|timestamp|timestamps|t|time_s|time_ms|seconds)$", re.I)
 #: a number written with a decimal comma (``1,73``): the CSV dialect of ``;``-separated files in much of Europe
 _DECIMAL_COMMA = re.compile(r"^[-+]?\d+,\d+(?:[eE][-+]?\d+)?$")
 
@@ -101,9 +102,11 @@ def _cells(line: str, delim: str | None) -> list[str]:
     return [c.strip().strip('"') for c in (line.split(delim) if delim else line.split())]
 
 
-def _read_csv(path: Path, channels: int | None, columns: Sequence[Any] | None, time_column: Any
-              ) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]]:
-    """(channels (n, c), the time column in seconds or None, the format record: dialect, columns, time column)."""
+def _read_csv(path: Path, channels: int | None, columns: Sequence[Any] | None, time_column: Any,
+              time_unit: str | None = None) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]]:
+    """(channels (n, c), the time column in seconds or None, the format record: dialect, columns, time column and
+    its unit). The time column: ``time_column``, else the first whose name rigctl knows as one
+    (:func:`rigctl.storage.time_column.unit_of_name`); its unit ``time_unit`` or the name's (never guessed)."""
     lines, delim, decimal, dialect = _csv_rows(path)
     first = _cells(lines[0], delim)
 
@@ -144,7 +147,7 @@ def _read_csv(path: Path, channels: int | None, columns: Sequence[Any] | None, t
 
     time_i = index(time_column) if time_column is not None else None
     if time_i is None and header is not None:  # a time column named as such is not a taxel, and gives the times
-        named = [i for i, name in enumerate(header) if _TIME_NAME.match(name)]
+        named = [i for i, name in enumerate(header) if unit_of_name(name) is not None]
         time_i = named[0] if named else None
     if columns:
         keep = [index(c) for c in columns]
@@ -153,6 +156,12 @@ def _read_csv(path: Path, channels: int | None, columns: Sequence[Any] | None, t
                                        "(--columns) and the time column")
     else:
         keep = [i for i in range(data.shape[1]) if i != time_i]
+        counters = [i for i in keep if rising_counter(data[:, i])]
+        if counters:  # a clock or a frame counter is never a taxel unless --columns names it
+            name = header[counters[0]] if header else str(counters[0])
+            raise TimeColumnError(f"{path}: column {name!r} rises at every row ({data[0, counters[0]]:g} to "
+                                  f"{data[-1, counters[0]]:g}): a clock or a counter, not a taxel; give it as "
+                                  f"--time-column {name} --time-unit s|ms|us|ns, or list the channels with --columns")
     out = data[:, keep]
     if channels is not None and out.shape[1] != channels:
         raise RecordingImportError(f"{path}: {out.shape[1]} channel columns, but --channels {channels} (one column "
@@ -161,9 +170,17 @@ def _read_csv(path: Path, channels: int | None, columns: Sequence[Any] | None, t
     meta: dict[str, Any] = {"csv": dialect, "columns": [header[i] if header else i for i in keep]}
     if time_i is not None:
         name = header[time_i] if header else str(time_i)
-        scale = 1e-3 if name.lower().endswith("_ms") else 1.0
-        times = data[:, time_i] * scale
-        meta["time_column"] = {"column": name, "unit": "ms" if scale != 1.0 else "s"}
+        named_unit = unit_of_name(name) if header else None
+        if time_unit is not None and named_unit is not None and time_unit != named_unit:
+            raise TimeColumnError(f"{path}: the time column {name!r} says {named_unit} by its name, --time-unit says "
+                                  f"{time_unit}: give the unit it holds")
+        unit = time_unit or named_unit
+        if unit is None:
+            raise TimeColumnError(f"{path}: the time column {name!r}: give its unit with --time-unit s|ms|us|ns "
+                                  "(rigctl never guesses it from the numbers)")
+        times = data[:, time_i] * TIME_UNITS[unit]
+        meta["time_column"] = {"column": name, "unit": unit,
+                               "unit_from": "--time-unit" if time_unit else "its name"}
     return out, times, meta
 
 
@@ -267,7 +284,8 @@ def _nwb_trials(table: Any, start_s: float, rate: float, n: int) -> list[dict[st
 
 def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = None, variable: str | None = None,
                         columns: Sequence[Any] | None = None, time_column: Any = None, nan: str = "refuse",
-                        whole_counts: bool = False) -> tuple[list[np.ndarray], float | None, dict[str, Any]]:
+                        whole_counts: bool = False, time_unit: str | None = None
+                        ) -> tuple[list[np.ndarray], float | None, dict[str, Any]]:
     """Read one recording file.
 
     Returns
@@ -276,7 +294,9 @@ def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = 
     rate_hz : float or None, the rate the file itself states (NWB), else None
     meta : dict, format details for the session's attributes (``nan``: the policy and the values it filled)
 
-    ``nan`` is the NaN policy (:func:`fill_nan`: refuse, hold, interpolate). ``whole_counts``: readings that are
+    ``nan`` is the NaN policy (:func:`fill_nan`: refuse, hold, interpolate). ``time_unit``: a CSV time column's
+    unit (:data:`rigctl.storage.time_column.TIME_UNITS`; else its name's, :class:`TimeColumnError` when neither).
+    ``whole_counts``: readings that are
     not whole numbers are refused (:func:`check_whole_counts`, before NaN samples are filled).
 
     Raises
@@ -293,7 +313,7 @@ def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = 
     rate = None
     meta: dict[str, Any] = {"format": fmt}
     if fmt == "csv":
-        arr, times, csv_meta = _read_csv(path, channels, columns, time_column)
+        arr, times, csv_meta = _read_csv(path, channels, columns, time_column, time_unit)
         meta.update(csv_meta)
         if times is not None:
             meta["time_s"] = times

@@ -6,11 +6,9 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import io
 import json
 import logging
 import os
-import uuid
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -18,26 +16,30 @@ from typing import Any
 import h5py
 import numpy as np
 
-from rigctl.core.provenance import PROVENANCE_ATTR, RESUMED_ATTR, provenance_json, software_provenance
+from rigctl.core.provenance import RESUMED_ATTR
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_labels
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
-from rigctl.core.version import __version__
-from rigctl.storage import h5objects, journal, journal_replay, session_recording, trial_facts
+from rigctl.storage import h5objects, journal, session_recording, sidecars, trial_facts
 from rigctl.storage.onboard_group import ONBOARD_ATTR, write_onboard
 from rigctl.storage.outputs import check_replaceable
+from rigctl.storage.session_create import (
+    _calibration_arrays,
+    _check_no_journal,
+    _new_file_image,
+    _write_calibration,
+    _write_new_file,
+    _writer_lock,
+)
 from rigctl.storage.session_format import (
     DEFAULT_SCHEMA_VERSION,
     EVENTS_ATTR,
-    PLAN_CHUNK_ROWS,
     PLAN_DTYPE,
     PLAN_FIELDS,
     SCHEMA_VERSION,
     SESSION_KINDS,
-    STATUS_ENUM,
     TAXEL_CHUNK_BYTES,
     SessionError,
-    SessionLocked,
     SessionWriteError,
     TrialStatus,
     _attr_value,
@@ -55,7 +57,6 @@ from rigctl.storage.session_format import (
     _utc_now,
     decode_events,
     plan_array,
-    taxels_description,
     trial_group_name,
 )
 from rigctl.storage.session_schema import (
@@ -90,83 +91,6 @@ def _writing(path: Path, *, durable: bool = True, wait_s: float = 10.0) -> Itera
         trial_facts.seal(path, stamp)  # under the lock: no other writer comes between
     finally:
         overlay.close()
-
-
-def _writer_lock(path: Path) -> journal.WriterLock:
-    """The writer lock of ``path`` (:class:`rigctl.storage.journal.WriterLock`). Raises SessionLocked if another
-    writer holds it, SessionWriteError if the lock file cannot be made."""
-    try:
-        return journal.WriterLock(path)
-    except journal.WriterLockHeld as exc:
-        raise SessionLocked(str(exc), exc.pid) from None
-    except OSError as exc:
-        raise SessionWriteError(f"cannot write {path}: {_os_error_text(exc)} (making its lock file "
-                                f"{journal.lock_path(path).name}); choose a writable place", exc.errno) from None
-
-
-def _new_file_image(plan_arr: np.ndarray, *, layout: SensorLayout, textures: TextureSet, protocol_source: str,
-                    protocol_name: str, protocol_format: str, rig_config: Mapping[str, Any] | None, kind: str,
-                    calibration: Mapping[str, Any] | None, attrs: Mapping[str, Any] | None,
-                    schema_version: int = DEFAULT_SCHEMA_VERSION, compression: str | None = "gzip") -> bytes:
-    """The bytes of a new session file (root attributes, ``/protocol``, ``/plan``, ``/trials``, ``/calibration``,
-    and for schema 4 and 5 the empty ``/recording`` arrays), built by HDF5 in memory: HDF5 never writes to a disk that
-    may be full (at a few KiB free it can crash there)."""
-    buf = io.BytesIO()
-    with h5py.File(buf, "w") as f:
-        f.attrs["schema_version"] = schema_version
-        f.attrs["session_id"] = str(uuid.uuid4())
-        f.attrs["created_utc"] = _utc_now()
-        f.attrs["rigctl_version"] = __version__
-        f.attrs["kind"] = kind
-        f.attrs["rig_config"] = json.dumps(dict(rig_config or {}), default=str)
-        f.attrs["sensor_layout"] = layout.to_json()
-        f.attrs["texture_set"] = textures.to_json()
-        for k, v in (attrs or {}).items():
-            f.attrs[k] = _attr_value(v)
-        if PROVENANCE_ATTR not in f.attrs:  # every session says what made it (the runner adds the rig's part)
-            f.attrs[PROVENANCE_ATTR] = provenance_json(software_provenance(kind=kind))
-        g = f.create_group("protocol")
-        g.create_dataset("source", data=protocol_source, dtype=h5py.string_dtype("utf-8"))
-        g.attrs["name"] = protocol_name
-        g.attrs["format"] = protocol_format
-        d = f.create_dataset("plan", data=plan_arr, maxshape=(None,), chunks=(PLAN_CHUNK_ROWS,))
-        d.attrs["status_enum"] = json.dumps(STATUS_ENUM)
-        trials = f.create_group("trials")
-        trials.attrs.update(taxels_description(layout))
-        if calibration:
-            _write_calibration(f, calibration, layout.n_channels)
-        if schema_version >= 4:
-            session_recording.create(f, layout.n_channels, compression=compression)
-    return buf.getvalue()
-
-
-def _write_new_file(path: Path, image: bytes) -> None:
-    """Write ``image`` to ``<name>.creating``, fsync it and rename it to ``path`` (which appears complete or not at
-    all). A journal of a file being replaced is deleted first (it must never be replayed onto the new one).
-
-    Raises SessionWriteError (nothing left behind) if the disk refuses the bytes (no space, read-only).
-    """
-    tmp = path.with_name(path.name + ".creating")
-    try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_BINARY", 0), 0o644)
-        try:
-            journal_replay.pwrite(fd, image, 0)
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        journal.journal_path(path).unlink(missing_ok=True)
-        os.replace(tmp, path)
-    except OSError as exc:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        free = ""
-        with contextlib.suppress(OSError):
-            st = os.statvfs(path.parent)
-            free = f", {st.f_bavail * st.f_frsize / 1024:.0f} KiB free"
-        raise SessionWriteError(f"{_os_error_text(exc)} creating {path} ({len(image) / 1024:.0f} KiB needed{free}): "
-                                "nothing was written; free space or choose another --out", exc.errno) from None
-
-
 
 
 class SessionWriter:
@@ -204,6 +128,9 @@ class SessionWriter:
         self._lock = _lock
         self.path = Path(path)
         self.durable = durable
+        #: the file :meth:`create` made (removed by :meth:`discard`); the session it replaces at the first commit
+        self._created_file: sidecars.Sidecar | None = None
+        self._replaces: Path | None = None
         #: how long a write waits for another process (a reader holding the HDF5 file lock) before FileBusy, s
         self.wait_s = 10.0
         try:
@@ -243,10 +170,22 @@ class SessionWriter:
         return self._lock is None or not self._lock.held
 
     def close(self) -> None:
-        """Release the writer lock (idempotent). Every write is on disk already; nothing else happens."""
+        """Release the writer lock (idempotent). Every write is on disk already; a new session that was to replace
+        another (``overwrite``) and has committed nothing is removed, the old one kept."""
         lock, self._lock = self._lock, None
+        if self._created_file is not None:
+            if self._replaces is not None:
+                self._created_file.remove()
+            self._created_file.close()
         if lock is not None:
             lock.release()
+
+    def discard(self) -> None:
+        """Remove the file :meth:`create` made (only if its name still holds it: an import written whole or not at
+        all), then :meth:`close`; a session it was to replace stays unless it was replaced already."""
+        if self._created_file is not None:
+            self._created_file.remove(committed_too=True)
+        self.close()
 
     def __enter__(self) -> "SessionWriter":
         return self
@@ -270,6 +209,9 @@ class SessionWriter:
         try:
             with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
                 yield f
+            if self._replaces is not None and self._created_file is not None:  # the new session holds a commit:
+                self._created_file.commit_to(self._replaces.name)  # it replaces the old one (renameat, atomic)
+                self.path, self._replaces = self._replaces, None
         except journal.FileBusy:
             raise
         except OSError as exc:
@@ -371,15 +313,30 @@ class SessionWriter:
         try:
             if overwrite:  # only a session is replaced: never a device, a link leading out, another program's file
                 check_replaceable(path, kind="session")
+            _check_no_journal(path)
             image = _new_file_image(
                 plan_arr, layout=layout, textures=textures, protocol_source=protocol_source,
                 protocol_name=protocol_name, protocol_format=protocol_format, rig_config=rig_config, kind=kind,
                 calibration=calibration, attrs=attrs, schema_version=schema_version, compression=compression)
-            _write_new_file(path, image)
-            return cls(path, compression=compression, durable=durable, _lock=lock)
+            # --overwrite: the old session stays until the new one's first commit (kept aside until then)
+            side = _write_new_file(path, image, keep_aside=os.path.lexists(path))
+            return cls._of_new_file(side, path, lock, compression=compression, durable=durable)
         except BaseException:
             lock.release()
             raise
+
+    @classmethod
+    def _of_new_file(cls, side: sidecars.Sidecar, path: Path, lock: journal.WriterLock, **kw: Any) -> "SessionWriter":
+        """The writer of the file :meth:`create` made (``side``); kept aside from ``path`` (an old session there),
+        it replaces that session at its first commit (:meth:`_commit`)."""
+        try:
+            writer = cls(side.path, _lock=lock, **kw)
+        except BaseException:
+            side.discard()
+            raise
+        writer._created_file = side
+        writer._replaces = path if side.path != path else None
+        return writer
 
     @classmethod
     def open(cls, path: str | os.PathLike[str], *, protocol_source: str | None = None,
@@ -762,30 +719,3 @@ def _with_id(planned: Any, default_id: int) -> Any:
     values = {n: _row_value(planned, n) for n in PLAN_DTYPE.names or ()}
     values["trial_id"] = default_id
     return {k: v for k, v in values.items() if v is not None}
-
-
-def _calibration_arrays(calibration: Mapping[str, Any], n_channels: int) -> dict[str, Any]:
-    """``taxel_min``/``taxel_max`` of ``calibration`` as float64 arrays. Raises ValueError unless ``(n_channels,)``."""
-    out = {}
-    for k in ("taxel_min", "taxel_max"):
-        if k in calibration:
-            arr = np.asarray(calibration[k], dtype=np.float64)
-            if arr.shape != (n_channels,):
-                raise ValueError(f"calibration {k} must have shape ({n_channels},) (one value per channel of the "
-                                 f"session's sensor), got {arr.shape}")
-            out[k] = arr
-    return out
-
-
-def _write_calibration(f: h5py.File, calibration: Mapping[str, Any], n_channels: int) -> None:
-    arrays = _calibration_arrays(calibration, n_channels)
-    if "calibration" in f:
-        del f["calibration"]
-    g = f.create_group("calibration")
-    for k, v in calibration.items():
-        if k in arrays:
-            g.create_dataset(k, data=arrays[k]).attrs["unit"] = "ADC counts"
-        else:
-            g.attrs[k] = _attr_value(v)
-
-

@@ -84,7 +84,7 @@ from rigctl.storage.trial_facts import (
 )
 
 __all__ = ["BESIDE_BYTES", "KEEP_HINT", "MAX_RATE_HZ", "MAX_TRIAL_S", "Beside", "KeptTaxels", "TrialReport", "TrialsExcluded",
-           "block_seq_gaps", "check_beside", "max_count", "precheck", "seq_gaps", "usable_trials"]
+           "block_seq_gaps", "check_beside", "length_bounds", "max_count", "precheck", "seq_gaps", "usable_trials"]
 
 #: no taxel sensor samples faster (1 MHz; the paper's runs at 1 kHz): a faster rate is a damaged header
 MAX_RATE_HZ = 1e6
@@ -406,10 +406,18 @@ def _check_duration(row: Any) -> str | None:
     return None
 
 
+def length_bounds(duration_s: float, rate_hz: float) -> tuple[float, float]:
+    """The length check's bounds, samples (recorded + missing) of a trial planned ``duration_s`` s at ``rate_hz``:
+    half and twice the planned count, +-2 (module docstring). A recorder that can tell a trial will not pass (the
+    handheld rig: an operator far slower or faster than the cue) cues it again instead of recording it."""
+    planned = int(round(duration_s * rate_hz))
+    return planned / 2 - 2, 2 * planned + 2
+
+
 def _too_long(duration: float, rate: float, n: int) -> str | None:
     """The length check's upper bound, made before any data is read (frames missing only make it longer)."""
     planned = int(round(duration * rate))
-    if n > 2 * planned + 2:
+    if n > length_bounds(duration, rate)[1]:
         return f"it holds {n} samples, its plan asks {duration:g} s = {planned} at {rate:g} Hz"
     return None
 
@@ -448,7 +456,8 @@ def _check_data(duration: float, rate: float, n: int, gaps: int, said: int, crc:
         return why, 0
     if gaps > said:
         return (f"its seq column shows {gaps} missing frames, its dropped_frames attribute says {said}"), gaps
-    if not planned / 2 - 2 <= n + gaps <= 2 * planned + 2:
+    lo, hi = length_bounds(duration, rate)
+    if not lo <= n + gaps <= hi:
         return (f"it holds {n} samples ({gaps} missing), its plan asks {duration:g} s = {planned} at "
                 f"{rate:g} Hz"), gaps
     return counts(), max(gaps, said)

@@ -100,3 +100,58 @@ def test_tracker_stamps_are_checked_both_ways(offset_s, refused):
             refuse_older_than_cue(stamped, arrived, 50, 10.0)
     else:
         refuse_older_than_cue(stamped, arrived, 50, 10.0)
+
+
+@pytest.mark.parametrize("scan_speed_mm_s, refused", [(80.0, False), (40.0, True), (150.0, False), (420.0, True)])
+def test_a_scan_the_validator_would_exclude_is_cued_again(scan_speed_mm_s, refused, tmp_path):
+    """Issue 78 item 6 / 79 item 6: a scan over 2x slower (or faster) than its cue was recorded complete, then
+    excluded as damaged by the session's length check; the rig now refuses it at once (ScanError: the run engine
+    cues it again), naming the speed scanned and the one asked for. Within 2x it is recorded."""
+    from rigctl.acquisition.handheld import HandheldRig
+    from rigctl.core.trial import PlannedTrial
+
+    class Source:
+        layout = LAYOUT
+
+        def scan(self, planned, *, stop=None):
+            secs = 270.0 / scan_speed_mm_s
+            t, x = _path((15, 15, 0.5), (15, 285, secs), (285, 285, 0.5))
+            return _scan(t, x)
+
+        def describe(self):
+            return {"kind": "synthetic"}
+
+        def close(self):
+            pass
+
+    rig = HandheldRig(Source(), host_config_path=str(tmp_path / "rig.json"))
+    planned = PlannedTrial(0, "L", 100.0, 500.0, 2.0)
+    if refused:
+        with pytest.raises(ScanError, match=f"2x {'slower' if scan_speed_mm_s < 100 else 'faster'}.*100 mm/s"):
+            rig.record_trial(planned)
+    else:
+        assert rig.record_trial(planned).n_samples == pytest.approx(200 / scan_speed_mm_s * 1000, abs=15)
+
+
+def test_a_tracker_in_metres_is_named_with_the_positions_it_sent():
+    """Issue 78 item 5: a tracker in metres without unit metadata timed out with 'no pass of the finger', never
+    naming the positions it saw or the unit; the message now names both (here after a 0.2 s wait of the test)."""
+    from rigctl.core.handheld import wait_for_pass
+
+    class Metres:
+        name, channels = "metres", (0,)
+
+        def since(self, t0):
+            t, x = _path((15, 15, 0.3), (15, 285, 3.0), (285, 15, 1.0))
+            return t + t0, (x / 1000.0)[:, None]
+
+        def describe(self):
+            return {}
+
+        def close(self):
+            pass
+
+    import time
+
+    with pytest.raises(ScanError, match=r"0\.015 to 0\.285 mm .*whole pass in metres; rigctl takes mm"):
+        wait_for_pass(Metres(), lambda x: np.asarray(x)[:, 0], time.monotonic(), timeout_s=0.2, poll_s=0.05)

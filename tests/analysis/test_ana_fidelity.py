@@ -205,3 +205,19 @@ def test_prediction_collapse_names_the_class_the_predictions_pile_on():
     assert text == ("most-predicted class, Untrained Speed (Fig. 3E) (even: 25 %): Original 85 % (A); "
                     "Force Scaled 25 % (A)")
     assert report.to_dict(res, 3)["collapse"]["untrained_speed"]["original"]["top_class"] == "A"
+
+
+def test_a_small_table_says_what_it_cannot_show():
+    """Issue 79 item 7: the paper guide's first-try size (2 trials per condition, 2 repetitions) printed 'NOT held'
+    four times without saying why; a table far below the paper's size now says so first, and one at its size not."""
+    from rigctl.analysis import report
+
+    values = {"original": 50.0, "speed_scaled": 45.0, "force_scaled": 80.0, "speed_force_scaled": 70.0}
+    res = _results({"untrained_force": values})
+    res.counts.update(cv={"per_texture": 6, "repeats": 2}, extrapolation={"train_per_cell": 1, "repeats": 2})
+    lines = report.format_ordering(res, 5).splitlines()
+    assert lines[0].startswith("size: 6 trials per texture") and "(paper: 500)" in lines[0]
+    assert "not expected to reproduce" in lines[0] and "NOT held" in lines[1]
+    res.counts.update(cv={"per_texture": 500, "repeats": 20}, extrapolation={"train_per_cell": 75, "repeats": 20})
+    assert report.size_note(res) is None
+    assert report.format_ordering(res, 5).startswith("paper's ordering")

@@ -1,13 +1,14 @@
-"""Issue 39 item 2 under simavr: a STOP or a silent host backs the actuator off at once (the firmware's step timer is
-retimed on a reversal, never left to fire a pending step in the old direction), and the true force (the harness's
-spring) falls below 100 g within 1 s. Timed on the harness's pins and the request's arrival (``RX``/``ASTEP``),
-both in simulated time."""
+"""Issue 39 item 2 under simavr: a STOP or a silent host stops the press at once (the firmware's step timer is
+retimed, never left to fire a pending step towards the sensor), and the true force (the harness's spring) falls below
+100 g within 1 s. Since issue 75 the back-off under load proves its way before it runs (controller.c backoff_begin:
+it holds while the drum stops and the HX711 settles, 5 readings, then one short step away, judged on the settled
+reading): its first step away comes within that hold, its steps at speed after. Timed on the harness's pins and the
+request's arrival (``RX``/``ASTEP``), both in simulated time."""
 
 from __future__ import annotations
 
 import time
 
-import numpy as np
 import pytest
 
 from rigctl.devices import wire
@@ -67,31 +68,31 @@ def _wait_sim(rig, t_s: float) -> None:
     rig._wait_telemetry(t_s, 10.0)
 
 
+#: the longest the back-off holds before its first step away: the drum at rest and the HX711 settled (5 readings at
+#: 80 SPS, 62.5 ms) plus a reading (controller.c backoff_begin)
+PROOF_HOLD_S = 6 * 0.0125 + 0.005
+
+
 def _check_backoff(rig, t_from: float, t_to: float) -> tuple[float, list[tuple[float, int]]]:
-    """The firmware backs off when it acts on the request, between ``t_from`` and ``t_to`` (the window its timing
-    allows). Its back-off starts from rest then, so the first step away comes one back-off period P (the steady
-    interval of the steps away) after it: that moment (returned) lies in the window; the first step away comes within
-    10 ms of ``t_to``; no step towards the sensor comes after ``t_to``, nor in the last P / 4 before that moment (a
-    step pending in the old direction fires at or after it, and the steps away follow it by about P); and the
-    spring's force is below 100 g 1 s after ``t_to``. Returns (that moment, the steps from ``t_from - 50 ms``)."""
+    """The firmware acts on the request between ``t_from`` and ``t_to`` (the window its timing allows): no step
+    towards the sensor comes after ``t_to`` (a step pending in the old direction is never fired); the first step away
+    comes after ``t_from`` and within :data:`PROOF_HOLD_S` of ``t_to`` (the back-off's proof), and at least 6 follow;
+    the spring's force is below 100 g 1 s after ``t_to``. Returns (the first step away, the steps from ``t_from - 50
+    ms``)."""
     _wait_sim(rig, t_to + 1.0)
     steps = [(t, d) for t, d in tuple(rig.actuator_steps) if t >= t_from - 0.05]
     away = [t for t, d in steps if d == 0 and t >= t_from]
     assert len(away) >= 6, f"no back-off after the request: steps {steps[:8]}"
-    period = float(np.median(np.diff(away[:6])))
-    t_acted = away[0] - period
-    assert t_from <= t_acted + period / 4 and t_acted <= t_to, \
-        f"the back-off began {1e3 * (t_acted - t_from):+.3f} ms after the earliest the firmware may act " \
-        f"({1e3 * (t_to - t_from):.3f} ms window)"
-    assert away[0] - t_to <= 0.010, f"the first step away came {1e3 * (away[0] - t_to):.1f} ms after the request"
-    towards = [round(1e3 * (t - t_acted), 3) for t, d in steps if d == 1 and t >= min(t_to, t_acted - period / 4)]
-    assert not towards, f"steps towards the sensor as the back-off began, ms after it: {towards[:5]}"
+    assert away[0] - t_to <= PROOF_HOLD_S, f"the first step away came {1e3 * (away[0] - t_to):.1f} ms after the request"
+    towards = [round(1e3 * (t - t_to), 3) for t, d in steps if d == 1 and t >= t_to]
+    assert not towards, f"steps towards the sensor after the firmware acted, ms after it: {towards[:5]}"
+    t_acted = away[0]
     tel = [x for x in tuple(rig.telemetry_history) if x.t_s >= t_to + 1.0]
     assert tel[0].force_g < 100.0, f"true force {tel[0].force_g:.0f} g 1 s after the request"
     return t_acted, steps
 
 
-def test_stop_mid_press_backs_off_within_10_ms(rig, drum):
+def test_stop_mid_press_stops_at_once_and_backs_off_after_its_proof(rig, drum):
     """A STOP while the force loop creeps towards the sensor or rests (a new setpoint 50 g up: at most a slow step
     pending in the old direction, the case the retimed step timer is for). Settled at the old setpoint, the loop
     crept either way, and a loaded CI run's STOP met a step away the loop made on its own 0.3 ms before the firmware
@@ -109,7 +110,7 @@ def test_stop_mid_press_backs_off_within_10_ms(rig, drum):
     t_acted, steps = _check_backoff(rig, t_req + FRAME_S, t_req + FRAME_S + 2 * TICK_S)
     before = [(round(1e3 * (t - t_req), 3), d) for t, d in steps if t < t_req + FRAME_S]
     assert all(d == 1 for _, d in before), ("the loop stepped away before the STOP", before)  # creeping in, or at rest
-    print(f"STOP: the back-off began {1e3 * (t_acted - t_req):.3f} ms after the request's arrival; steps (ms, 1 = "
+    print(f"STOP: the first step away {1e3 * (t_acted - t_req):.3f} ms after the request's arrival; steps (ms, 1 = "
           f"towards the sensor): {[(round(1e3 * (t - t_req), 3), d) for t, d in steps[:6]]}")
 
 
@@ -126,7 +127,7 @@ def test_host_silence_mid_press_backs_off_at_the_watchdog(rig, drum):
     t_last = rig.request_times[-1]
     t_from = t_last + FRAME_S + 0.300
     t_acted, steps = _check_backoff(rig, t_from, t_from + 3 * TICK_S)
-    print(f"watchdog: the back-off began {1e3 * (t_acted - t_last):.3f} ms after the last request's arrival; steps "
+    print(f"watchdog: the first step away {1e3 * (t_acted - t_last):.3f} ms after the last request's arrival; steps "
           f"(ms, 1 = towards the sensor): {[(round(1e3 * (t - t_last), 3), d) for t, d in steps[:6]]}")
     st = drum.read_status()
     assert st.state == State.FAULT and Fault.WATCHDOG in st.faults
@@ -151,7 +152,7 @@ def test_injected_host_silence_and_reversed_actuator_on_the_harness(rig, drum):
     assert st.state == State.FAULT and Fault.WATCHDOG in st.faults
     drum.clear_fault()
     rig.schedule = None
-    assert rig.fault_refusal(parse_fault("hx711-10sps@1")) is not None
+    assert rig.fault_refusal(parse_fault("hx711-10sps@1")) is None  # the RATE pin and a power cycle (issue 80)
     rig.inject_faults([parse_fault("reversed-actuator@0+2")])
     _wait_sim(rig, rig.next_telemetry().t_s + 0.1)
     drum.home()

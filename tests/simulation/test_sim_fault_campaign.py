@@ -60,7 +60,10 @@ def test_cases_are_drawn_from_their_seed_over_the_hazard_table():
     assert all(c.duration_s == 0 for c in cases if c.fault in INSTANT_FAULTS)
     assert any(math.isinf(c.duration_s) for c in cases) and any(0 < c.duration_s < 5 for c in cases)
     assert {draw_case(s, ["estop"]).fault for s in range(20)} == {"estop"}
-    assert all(250 <= c.value <= 6000 for c in cases if c.fault == "contact-stiffness")
+    assert all(100 <= c.value <= 1e5 for c in cases if c.fault == "contact-stiffness")  # a rig config's whole range
+    old = [draw_case(s, draw="v1") for s in range(400)]  # the draw the FIXED cases were found with
+    assert all(250 <= c.value <= 6000 for c in old if c.fault == "contact-stiffness")
+    assert draw_case(5538, draw="v1").fault == "hx711-frozen" and draw_case(5507, draw="v1").value == 2723
 
 
 def bench(*args: str, timeout_s: float) -> dict:
@@ -99,8 +102,13 @@ FIXED = {
           "drove 2.0 mm towards the sensor in 0.4 s: true 6021 g (the motor swapped while the probe held still: the "
           "approach's proof was 6 readings old, the actuator now stops where it stands: 363 g)",
 }
-#: open cases of the campaign (strict xfail: a fixed one must move to FIXED)
-FOUND: dict[int, str] = {}
+#: open cases of the campaign (strict xfail: a fixed one must move to FIXED), on the rig as built (--as-built: the
+#: driver's stall at 1600 g), the draw of issue 75 (every fault of the bill of materials)
+FOUND: dict[int, str] = {
+    5524: "coupling-slip=41.66% while a 1075 g trial runs (809 g/mm, 80 SPS): the coupling winds up while the loop "
+          "drives, catches up when the motor holds and the screw jumps: true 1877 g; no stall bounds a jump (the "
+          "motor did not push it); the rig's bound is a coupling that cannot slip (docs/safety.md, FMEA)",
+}
 
 
 @pytest.mark.slow
@@ -111,23 +119,27 @@ def test_a_fixed_seed_slice_of_the_campaign_on_the_model_rig():
     latches at power-up (its rig config clears it at open: a power-on host silence may keep one from opening); some
     ran to the end."""
     out = bench("--cases", str(MODEL_SLICE), "--seed", str(SLICE_SEED), timeout_s=1200)
-    assert out["cases"] == MODEL_SLICE
+    assert out["cases"] == MODEL_SLICE and out["not_run"] == 0, out["not_run_cases"]
     new = [v for v in out["violations"] if v["seed"] not in FOUND and v["seed"] not in FIXED]
     assert new == [], json.dumps(new, indent=1)
     assert out["worst_true_force_g"] > 0
     assert "open: FaultAtOpen" not in out["outcomes"] and out["outcomes"].get("completed", 0) > 0, out["outcomes"]
 
 
-def _replay(seed: int) -> list:
-    proc = subprocess.run([sys.executable, str(BENCH), "--replay", str(seed)], capture_output=True, text=True,
+def _replay(seed: int, *args: str) -> list:
+    """The violations of ``seed``'s case (``args``: the bench's options, e.g. ``--draw v1 --firmware-only``: drawn
+    as then, the firmware alone, no driver stall, as then)."""
+    proc = subprocess.run([sys.executable, str(BENCH), "--replay", str(seed), *args], capture_output=True, text=True,
                           timeout=600)
-    return json.loads(proc.stdout)["violations"]
+    out = json.loads(proc.stdout)
+    assert out["not_run"] is None, out["not_run"]
+    return out["violations"]
 
 
 @pytest.mark.parametrize("seed", sorted(FIXED))
 def test_a_violation_the_campaign_found_holds_now(seed):
     """The case of ``seed`` (``bench_fault_campaign.py --replay SEED``) breaks no invariant (FIXED says what it did)."""
-    assert _replay(seed) == [], FIXED[seed]
+    assert _replay(seed, "--draw", "v1", "--firmware-only") == [], FIXED[seed]
 
 
 @pytest.mark.parametrize("seed", sorted(FOUND))
@@ -154,3 +166,43 @@ def test_the_truth_log_columns_are_read_by_name(tmp_path):
     (tmp_path / "x.csv").write_text("a,b\n1,2\n")
     with pytest.raises(ValueError, match="no truth log"):
         read_truth_log(tmp_path / "x.csv")
+
+
+def _bench_module():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_fault_campaign", BENCH)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_case_that_did_not_run_is_not_run_and_fails_the_campaign(monkeypatch, capsys):
+    """Issue 80 item 3: a rig that did not open (its truth log then empty) is ``not_run``, named with why, in the
+    JSON's ``not_run`` and ``results``; the campaign exits 1 for it as for a violation."""
+    bench_mod = _bench_module()
+
+    class NoRig:
+        @staticmethod
+        def connect(*a, **k):
+            raise OSError("the port vanished")
+
+    monkeypatch.setattr(bench_mod, "Rig", NoRig)
+    assert bench_mod.main(["--cases", "2", "--seed", "123", "--json"]) == 1
+    out = json.loads(capsys.readouterr().out)
+    assert out["not_run"] == 2 and out["violations"] == []
+    assert {c["why"] for c in out["not_run_cases"]} == {"open: OSError: the port vanished"}
+    assert [r["seed"] for r in out["results"]] == [123, 124]
+    assert all(r["outcome"] == "not_run" and set(r) >= {"seed", "fault", "outcome", "true_force_max_g"}
+               for r in out["results"])
+
+
+def test_faults_narrows_the_draw_and_an_unknown_fault_is_a_usage_error(capsys):
+    """``--faults`` draws only the faults named (a seed then draws from that list on every rig); a name that is no
+    fault exits 2 with one line."""
+    bench_mod = _bench_module()
+    with pytest.raises(SystemExit) as exc:
+        bench_mod.main(["--faults", "estop,nope", "--cases", "1"])
+    assert exc.value.code == 2 and "unknown fault nope" in capsys.readouterr().err
+    assert {draw_case(s, ["cell-gain", "home-switch"]).fault for s in range(30)} == {"cell-gain", "home-switch"}

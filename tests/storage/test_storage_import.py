@@ -278,11 +278,16 @@ def test_volts_with_a_reference(tmp_path):
     p = write(tmp_path / "wool__V10__0.npy", volts, "npy")
     out = tmp_path / "s.h5"
     r = run(p, "--rate", 100, "--label-pattern", PATTERN, "--volts-ref", 5, "--out", out)
+    # 5 V itself is one step past 1023: refused (issue 77: volts above the reference were pinned without a word)
+    assert r.exit_code != 0 and "1 of 2700 values are outside the 10-bit ADC range" in r.output, r.output
+    assert "--clip" in r.output and not out.exists()
+    r = run(p, "--rate", 100, "--label-pattern", PATTERN, "--volts-ref", 5, "--clip", "--out", out)
     assert r.exit_code == 0, r.output
+    assert "1 of 2700 values clipped to the 10-bit range 0..1023 (--clip)" in r.output, r.output
     with open_session(out) as s:
         np.testing.assert_array_equal(s.trial(0).taxels, counts)
         step = json.loads(s.attrs["import_steps"])["value_scale"]
-        assert step["unit"] == "volts" and step["clipped_values"] == 1  # 5 V itself is one step past 1023
+        assert step["unit"] == "volts" and step["clipped_values"] == 1
     help_text = CliRunner().invoke(main, ["import", "--help"]).output
     assert "V/2^bits" in help_text
 

@@ -304,13 +304,17 @@ static void test_controller()
     // an idle host that only monitors never trips the watchdog
     run_ms(c, p, now, 3000, false);
     CHECK(c.state == RIGCTL_STATE_IDLE);
-    // force limit: a bump over FORCE_LIMIT_G faults at the next reading and backs off at once
+    // force limit: a bump over FORCE_LIMIT_G faults at the next reading; the back-off proves its way with a short
+    // step once the HX711 has settled (issue 75), then runs
     CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
     run_ms(c, p, now, 3000);
     CHECK(c.state == RIGCTL_STATE_FORCE_SETTLED);
     p.extra_g = 1200;
     run_ms(c, p, now, 13);
-    CHECK(c.state == RIGCTL_STATE_FAULT && (c.faults & RIGCTL_FAULT_FORCE_LIMIT) && c.act_vel_mm_s < 0);
+    CHECK(c.state == RIGCTL_STATE_FAULT && (c.faults & RIGCTL_FAULT_FORCE_LIMIT) && c.act_vel_mm_s <= 0);
+    double x_latch = p.x_mm;
+    run_ms(c, p, now, 250);
+    CHECK(p.x_mm < x_latch - 0.1 && c.act_vel_mm_s < 0); // proven: backing off at speed
     CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT)); // condition persists
     p.extra_g = 0;
     run_ms(c, p, now, 50);
@@ -413,7 +417,8 @@ static void test_safety()
         CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 500) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
         for (int i = 0; i < 300 && c.state != RIGCTL_STATE_FAULT; i++) run_ms(c, p, now, 10);
         CHECK(c.state == RIGCTL_STATE_FAULT && c.faults == RIGCTL_FAULT_LOADCELL_REVERSED);
-        CHECK(p.force() < 3 * 15 + 1 && c.act_vel_mm_s < 0); // stopped within a reading or two
+        CHECK(p.force() < 3 * 15 + 1 && c.act_vel_mm_s <= 0); // stopped within a reading or two; backing off
+        CHECK(c.backoff_phase != 0); // under load: its way proven by a short step first (issue 75)
         run_ms(c, p, now, 3000);
         CHECK(p.x_mm <= 0.01);
         // calibrated negative on purpose: the same cell presses normally
@@ -526,6 +531,33 @@ static void test_safety()
         run_ms(c, p, now, 1000);
         std::printf("safety: reversed back-off: peak %.0f g\n", p.peak_g);
         CHECK(c.faults == RIGCTL_FAULT_ACTUATOR_DIRECTION && !c.homed && c.act_vel_mm_s == 0.0f && p.peak_g < 750);
+    }
+    {   // issue 75 row 1: the motor's coil pair swapped while the loop holds 1400 g (its proof from before the swap),
+        // then the release's back-off (a latch's is the same): it proves its way with a short step first and stops
+        // where it stands; it adds at most BACKOFF_RISE_G + BACKOFF_PROOF_G (60 g) to the force at the latch (firmware 1.3
+        // ran the back-off blind on the old proof for the HX711's settling: 2,688 g under simavr at 10 SPS)
+        for (int swapped = 0; swapped < 2; swapped++) {
+            ctl_t c;
+            Plant p;
+            p.k = 650;
+            p.sinc4 = true;
+            ctl_init(&c, 0, 0);
+            now = 0;
+            run_ms(c, p, now, 30);
+            home(c, p, now);
+            press_settled(c, p, now, 1400);
+            p.reversed = swapped;
+            run_ms(c, p, now, 100);
+            CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_STOP)); // the release: the back-off a latch takes too
+            double at_latch = p.force();
+            p.peak_g = 0;
+            run_ms(c, p, now, 3000);
+            std::printf("safety: back-off under 1400 g, motor %s: %.0f g at its start, peak %.0f g after, x %.3f mm\n",
+                        swapped ? "swapped" : "ok", at_latch, p.peak_g, p.x_mm);
+            CHECK(p.peak_g <= at_latch + 60.0);
+            if (swapped) CHECK((c.faults & RIGCTL_FAULT_ACTUATOR_DIRECTION) && !c.homed && c.act_vel_mm_s == 0.0f);
+            else CHECK(p.x_mm <= 0.01 && c.homed); // the way proven by the first step: home at speed
+        }
     }
     {   // e-stop: FAULT, not homed, CLEAR_FAULT refused while open, then NOT_HOMED
         ctl_t c;

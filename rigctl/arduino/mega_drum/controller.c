@@ -122,12 +122,58 @@ static uint8_t home_overloaded(const ctl_t *c)
            load_g(c, c->loadcell_raw, zero) > home_load_cap_g(c);
 }
 
+/* a back-off under load proves its way first (spec 2.11, issue 75): the press's own proof may be older than the fault
+ * (a motor swapped while the loop held: 2,688 g when the back-off ran blind on it for the HX711's settling at 10 SPS).
+ * It holds until the drum is at rest and the HX711 has settled (RATE_PERIODS + 1 readings: the load then, d0), then
+ * creeps: steps of at most BACKOFF_PROOF_UM and BACKOFF_PROOF_G of spring force at the contact's stiffness (the
+ * probe's, else the stiffest the loop holds), each held until the HX711 has settled on it. A load fallen below d0 by
+ * half of what a step takes off at the probe's stiffness (at least BACKOFF_MIN_G) proves the way: it goes on at speed,
+ * watched; risen as much, ACTUATOR_DIRECTION where it stands (HOME creeps and proves the way later). Its blind travel
+ * towards the sensor is one step (<= BACKOFF_PROOF_UM, the campaign's step-after-latch slack) on a contact stiff enough
+ * to show it, whatever the HX711's rate. After BACKOFF_PROOF_TRIES steps with neither (a contact so soft that the
+ * travel carries no force) it goes on, watched. Under no load (below BACKOFF_LOAD_G) it runs at once, watched. */
+#define BACKOFF_PROOF_G 40.0f
+#define BACKOFF_PROOF_UM 8.0f
+#define BACKOFF_MIN_G 1.0f
+#define BACKOFF_PROOF_TRIES 4u
+#define BACKOFF_LOAD_G 30.0f
+enum { BACKOFF_FREE = 0, BACKOFF_REST, BACKOFF_STEP, BACKOFF_SETTLE };
+
+static void backoff_step(ctl_t *c)
+{
+    c->backoff_target_steps = c->act_pos_steps - c->backoff_step_steps;
+    c->backoff_phase = BACKOFF_STEP;
+    c->backoff_tries++;
+}
+
+static void backoff_begin(ctl_t *c, float k_meas_g_per_step)
+{
+    int32_t zero, by_um;
+    float k, spmm = (float)c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
+    c->backoff_phase = BACKOFF_FREE;
+    c->backoff_tries = 0;
+    c->backoff_readings = 0;
+    if (!c->have_reading || !direction_zero(c, &zero) || load_g(c, c->loadcell_raw, zero) < BACKOFF_LOAD_G) return;
+    k = k_meas_g_per_step > 0.0f ? k_meas_g_per_step : (float)ctl_stiffness_max(c) / spmm;
+    c->backoff_step_steps = (int32_t)(BACKOFF_PROOF_G / k);
+    by_um = (int32_t)(BACKOFF_PROOF_UM * 1e-3f * spmm);
+    if (c->backoff_step_steps > by_um) c->backoff_step_steps = by_um;
+    if (c->backoff_step_steps < 1) c->backoff_step_steps = 1;
+    c->backoff_fall_g = k_meas_g_per_step > 0.0f ? 0.5f * k * (float)c->backoff_step_steps : 0.0f;
+    if (c->backoff_fall_g < BACKOFF_MIN_G) c->backoff_fall_g = BACKOFF_MIN_G;
+    c->backoff_phase = BACKOFF_REST;
+}
+
 /* the actuator stops where it is (position unknown) or, homed, backs off to home */
 static void release_actuator(ctl_t *c)
 {
+    float k_meas = c->contact_valid ? c->contact_k_g_per_step : 0.0f;
     c->contact_valid = 0; /* released: the next press probes the contact again (spec 2.11) */
     if (c->homed) {
-        if (c->act_mode != ACT_MODE_RETRACT) move_watch_start(c, RIGCTL_HX711_RATE_PERIODS);
+        if (c->act_mode != ACT_MODE_RETRACT) {
+            move_watch_start(c, RIGCTL_HX711_RATE_PERIODS);
+            backoff_begin(c, k_meas);
+        }
         c->act_mode = ACT_MODE_RETRACT;
         c->act_vel_mm_s = -ACT_MAX_SPEED_MM_S;
     } else {
@@ -689,6 +735,12 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
         if (c->act_pos_steps <= 0 || c->home_switch) {
             c->act_vel_mm_s = 0.0f;
             c->act_mode = ACT_MODE_HOLD;
+        } else if (c->backoff_phase == BACKOFF_STEP && c->act_pos_steps <= c->backoff_target_steps) {
+            c->act_vel_mm_s = 0.0f; /* the proof step is done: hold until the HX711 has settled on it */
+            c->backoff_phase = BACKOFF_SETTLE;
+            c->backoff_readings = 0;
+        } else if (c->backoff_phase == BACKOFF_SETTLE || c->backoff_phase == BACKOFF_REST) {
+            c->act_vel_mm_s = 0.0f;
         } else {
             c->act_vel_mm_s = -ACT_MAX_SPEED_MM_S;
         }
@@ -821,6 +873,24 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
     }
     c->loadcell_raw = raw;
     c->have_reading = 1;
+    if (c->act_mode == ACT_MODE_RETRACT && c->backoff_phase == BACKOFF_REST && direction_zero(c, &zero)) {
+        if (c->drum_cmd_mm_s > 0.0f || c->drum_actual_mm_s > 0.0f) c->backoff_readings = 0; /* the runout's ripple */
+        else if (++c->backoff_readings > RIGCTL_HX711_RATE_PERIODS) {
+            c->backoff_d0_g = load_g(c, raw, zero); /* at rest, settled: what the steps are judged against */
+            backoff_step(c);
+        }
+    } else if (c->act_mode == ACT_MODE_RETRACT && c->backoff_phase == BACKOFF_SETTLE &&
+               ++c->backoff_readings > RIGCTL_HX711_RATE_PERIODS && direction_zero(c, &zero)) {
+        float d = load_g(c, raw, zero);
+        if (d >= c->backoff_d0_g + c->backoff_fall_g) {
+            direction_fault(c); /* it pressed: stop where it stands, not homed (HOME creeps and proves) */
+        } else if (d <= c->backoff_d0_g - c->backoff_fall_g || c->backoff_tries >= BACKOFF_PROOF_TRIES) {
+            c->backoff_phase = BACKOFF_FREE; /* the load fell: the way is proven now; watched from here */
+            move_watch_start(c, 0);
+        } else {
+            backoff_step(c); /* no clear change yet (a soft contact, backlash): one more step */
+        }
+    }
     if (c->act_mode == ACT_MODE_HOMING || c->act_mode == ACT_MODE_RETRACT) {
         /* moving home or backing off only takes force off the cell: a load (|raw - zero|, sign-free: a reversed
          * motor and a reversed cell alike) grown above the lowest since the move began means it drives towards the

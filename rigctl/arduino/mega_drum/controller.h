@@ -89,6 +89,16 @@ typedef struct {
     uint8_t press_dir_age;     /* readings since the count and the force last moved together (255: not proven) */
     uint8_t press_dir_held;    /* proven by the probe's step or since it was done, nothing against it since */
     uint8_t press_dir_leave;   /* the press left the closed home switch homed and has not reached the contact */
+    /* a back-off under load proves its way before it runs (spec 2.11): at rest and settled, short steps held until
+     * the HX711 has settled on each, and the load must have fallen (controller.c: backoff_begin); no proof older
+     * than the latch moves the actuator */
+    uint8_t backoff_phase;     /* BACKOFF_FREE, BACKOFF_REST, BACKOFF_STEP, BACKOFF_SETTLE */
+    uint8_t backoff_tries;     /* proof steps taken */
+    uint8_t backoff_readings;  /* readings since the proof step stopped */
+    int32_t backoff_target_steps;
+    int32_t backoff_step_steps;
+    float backoff_d0_g;        /* the load (|raw - zero|, g) at rest before the first step */
+    float backoff_fall_g;      /* the fall that proves the way (and the rise that disproves it), g */
     /* time */
     uint32_t now_ms;
     uint32_t last_request_ms;

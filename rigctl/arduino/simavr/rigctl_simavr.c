@@ -344,6 +344,18 @@ static atomic_int estop_open_req;    /* 1 = the e-stop contact is open */
 static atomic_int hang_req;          /* 1 = PA0 high until the next reset */
 static atomic_int polarity_req = 1;  /* +1 or -1: the load cell's sign */
 static atomic_int home_broken_req;   /* 1 = the home switch never closes */
+static atomic_int home_stuck_req;    /* 1 = the home switch reads closed wherever the actuator is (D7 shorted) */
+static _Atomic double cell_gain_req = 1.0;   /* the load cell's sensitivity against its calibration ("cell gain X") */
+static _Atomic double cell_offset_g_req;     /* the cell's zero moved by this many g ("cell offset G") */
+static _Atomic double act_slip_req;          /* "coupling slip F": F of the actuator's steps wind the coupling up */
+static _Atomic double act_lost_req;          /* "steps lost F": F of the actuator's steps are lost for good */
+static _Atomic double hx_dout_noise_req;     /* "hx711 dout-noise P": each DOUT bit read flips with probability P */
+static atomic_int en_stuck_req;      /* 1 = the drivers' EN input stuck active: they drive whatever the MCU says */
+static atomic_int hx_rate_req;       /* "hx711 rate N": the RATE pin changed, the board powered on again (0: none) */
+static atomic_int drum_reversed_req; /* 1 = the drum motor's coil pair swapped: the real drum turns backwards */
+static const char *opt_eeprom_write;
+static char eeprom_write_req[160];   /* "eeprom-write OFF:HEX" then a power-on: applied by the simulation thread */
+static atomic_int eeprom_write_pending;
 static atomic_int eeprom_flip_req = -1; /* EEPROM offset to corrupt, -1 = none */
 static atomic_int eeprom_corrupt_req = -1; /* the same, then a brown-out reset in the same step */
 static atomic_int hx_sck_broken_req;  /* 1 = the HX711's SCK wire is broken */
@@ -470,9 +482,39 @@ static void *stdin_thread(void *arg)
         } else if (!strcmp(line, "hang")) {
             atomic_store(&hang_req, 1);
             printf("OK hang\n");
-        } else if (!strcmp(line, "homeswitch broken") || !strcmp(line, "homeswitch ok")) {
+        } else if (!strcmp(line, "homeswitch broken") || !strcmp(line, "homeswitch ok") ||
+                   !strcmp(line, "homeswitch stuck")) {
             atomic_store(&home_broken_req, line[11] == 'b');
+            atomic_store(&home_stuck_req, line[11] == 's');
             printf("OK homeswitch\n");
+        } else if (!strncmp(line, "cell gain ", 10) || !strncmp(line, "cell offset ", 12)) {
+            if (line[5] == 'g') atomic_store(&cell_gain_req, atof(line + 10));
+            else atomic_store(&cell_offset_g_req, atof(line + 12));
+            printf("OK cell\n");
+        } else if (!strncmp(line, "coupling slip ", 14) || !strncmp(line, "steps lost ", 11)) {
+            double f = atof(line[0] == 'c' ? line + 14 : line + 11);
+            atomic_store(line[0] == 'c' ? &act_slip_req : &act_lost_req, f < 0.0 ? 0.0 : f > 1.0 ? 1.0 : f);
+            printf("OK %s\n", line[0] == 'c' ? "coupling" : "steps");
+        } else if (!strncmp(line, "hx711 dout-noise ", 17)) {
+            double p = atof(line + 17);
+            atomic_store(&hx_dout_noise_req, p < 0.0 ? 0.0 : p > 1.0 ? 1.0 : p);
+            printf("OK hx711\n");
+        } else if (!strncmp(line, "hx711 rate ", 11)) {
+            int r = atoi(line + 11);
+            if (r == 10 || r == 80) {
+                atomic_store(&hx_rate_req, r);
+                printf("OK hx711\n");
+            } else {
+                printf("ERR hx711\n");
+            }
+        } else if (!strcmp(line, "driver en-stuck") || !strcmp(line, "driver ok")) {
+            atomic_store(&en_stuck_req, line[7] == 'e');
+            printf("OK driver\n");
+        } else if (!strncmp(line, "eeprom-write ", 13) && strlen(line + 13) < sizeof eeprom_write_req) {
+            if (!atomic_load(&eeprom_write_pending)) {
+                strcpy(eeprom_write_req, line + 13);
+                atomic_store(&eeprom_write_pending, 1);
+            }
         } else if (!strncmp(line, "eeprom-flip ", 12)) {
             atomic_store(&eeprom_flip_req, atoi(line + 12));
         } else if (!strncmp(line, "eeprom-corrupt ", 15)) {
@@ -492,6 +534,9 @@ static void *stdin_thread(void *arg)
         } else if (!strcmp(line, "actuator reversed") || !strcmp(line, "actuator ok")) {
             atomic_store(&act_reversed_req, line[9] == 'r');
             printf("OK actuator\n");
+        } else if (!strcmp(line, "drum reversed") || !strcmp(line, "drum forward")) {
+            atomic_store(&drum_reversed_req, line[5] == 'r');
+            printf("OK drum\n");
         } else if (!strncmp(line, "drum slip ", 10) || !strcmp(line, "drum ok")) {
             double f = line[5] == 's' ? atof(line + 10) : 0.0;
             atomic_store(&drum_slip_req, f < 0.0 ? 0.0 : f > 1.0 ? 1.0 : f);
@@ -1237,6 +1282,7 @@ static uint64_t steps_disabled; /* STEP pulses while the drivers were disabled (
 static int drivers_enabled(void)
 {
     avr_ioport_state_t st;
+    if (atomic_load(&en_stuck_req)) return 1; /* the EN input stuck active (a shorted wire, a failed input) */
     if (avr_ioctl(avr, AVR_IOCTL_IOPORT_GETSTATE('H'), &st)) return 1;
     return ((st.ddr >> 5) & 1) && !((st.port >> 5) & 1);
 }
@@ -1262,6 +1308,8 @@ static void drive_pin(avr_irq_t *irq, char port, int bit, int level, int *last)
     *last = level;
 }
 
+static int eeprom_write_arg(const char *arg);
+
 static void safety_poll(void)
 {
     int off = atomic_exchange(&eeprom_flip_req, -1), brownout = 0;
@@ -1282,6 +1330,13 @@ static void safety_poll(void)
             atomic_store(&reset_requested, 1);
         }
     }
+    if (atomic_load(&eeprom_write_pending)) { /* a record saved (a wrong calibration with a valid checksum), then a
+                                               * power cycle: the firmware boots with it */
+        printf("%s eeprom-write\n", eeprom_write_arg(eeprom_write_req) ? "ERR" : "OK");
+        atomic_store(&eeprom_write_pending, 0);
+        atomic_store(&reset_cause_req, 1);
+        atomic_store(&reset_requested, 1);
+    }
     drive_pin(estop_pin, 'E', 4, atomic_load(&estop_open_req) ? 1 : 0, &estop_level);
     drive_pin(hang_pin, 'A', 0, atomic_load(&hang_req) ? 1 : 0, &hang_level);
 }
@@ -1289,8 +1344,6 @@ static void safety_poll(void)
 /* --eeprom-write OFFSET:HEXBYTES: bytes in the EEPROM before the first instruction (after the image's .eeprom
  * section): what a board that was once calibrated holds (HilRig writes the calibration record, as the simulated
  * rigs' factory calibration does) */
-static const char *opt_eeprom_write;
-
 static int eeprom_write_arg(const char *arg)
 {
     uint8_t bytes[64];
@@ -1345,12 +1398,19 @@ static double mega_force_g(void)
 static int home_level = -1;
 static void update_home(void)
 {
-    drive_pin(home_pin, 'H', 4, act_steps <= 0 && !atomic_load(&home_broken_req) ? 0 : 1, &home_level);
+    int closed = atomic_load(&home_stuck_req) || (act_steps <= 0 && !atomic_load(&home_broken_req));
+    drive_pin(home_pin, 'H', 4, closed ? 0 : 1, &home_level);
 }
 
 /* the direction (1 = towards the sensor, as the motor really turns) and time of the last actuator step that moved */
 static int act_last_dir = -1;
 static double act_last_t;
+/* a slipping coupling ("coupling slip F"): the steps it did not pass on wind it up (act_windup) and it catches up at
+ * once when the motor has held still for ACT_CATCHUP_MS (the screw jumps); lost steps ("steps lost F") never return */
+#define ACT_CATCHUP_MS 20.0
+static double act_slip_acc, act_lost_acc;
+static int64_t act_windup;
+static uint64_t act_step_last_cycle;
 
 static void act_step_hook(avr_irq_t *irq, uint32_t value, void *param)
 {
@@ -1376,6 +1436,21 @@ static void act_step_hook(avr_irq_t *irq, uint32_t value, void *param)
                 return; /* lost: the firmware's step count goes on */
             }
         }
+        double slip = atomic_load(&act_slip_req), lost = atomic_load(&act_lost_req);
+        act_step_last_cycle = avr->cycle;
+        if (slip > 0.0 || lost > 0.0) {
+            act_slip_acc += slip;
+            act_lost_acc += lost;
+            if (act_lost_acc >= 1.0) { /* lost for good: the motor skipped it */
+                act_lost_acc -= 1.0;
+                return;
+            }
+            if (act_slip_acc >= 1.0) { /* the coupling winds up: the screw stays, the motor turned */
+                act_slip_acc -= 1.0;
+                act_windup += fwd ? 1 : -1;
+                return;
+            }
+        }
         act_steps += fwd ? 1 : -1;
         update_home();
     }
@@ -1398,7 +1473,8 @@ static void drum_step_hook(avr_irq_t *irq, uint32_t value, void *param)
         return;
     }
     drum_steps += drum_dir ? 1 : -1;
-    drum_turn_steps += (drum_dir ? 1.0 : -1.0) * (1.0 - atomic_load(&drum_slip_req)); /* exact without slip */
+    drum_turn_steps += (drum_dir ^ atomic_load(&drum_reversed_req) ? 1.0 : -1.0) *
+                       (1.0 - atomic_load(&drum_slip_req)); /* exact without slip */
 }
 
 static void drum_dir_hook(avr_irq_t *irq, uint32_t value, void *param)
@@ -1436,7 +1512,16 @@ static void hx_sck_hook(avr_irq_t *irq, uint32_t value, void *param)
     }
     if (!(value & 1) || !hx_ready) return; /* shift on rising edges while a reading is out */
     if (hx_bit < 24) {
-        hx_dout_set((hx_value >> (23 - hx_bit)) & 1);
+        int bit = (hx_value >> (23 - hx_bit)) & 1;
+        double p = atomic_load(&hx_dout_noise_req);
+        if (p > 0.0) { /* noise on the DOUT line: the bit the MCU samples flips with probability p */
+            static uint64_t st = 0x2545F4914F6CDD1Dull;
+            st ^= st << 13;
+            st ^= st >> 7;
+            st ^= st << 17;
+            if ((double)(st >> 11) / 9007199254740992.0 < p) bit ^= 1;
+        }
+        hx_dout_set(bit);
         hx_bit++;
     } else { /* 25th clock: gain 128, DOUT high until the next conversion */
         hx_dout_set(1);
@@ -1505,18 +1590,54 @@ static void mega_setup(void)
     safety_setup();
 }
 
+/* --state-addr ADDR: the data-space address of the controller's state byte (mega_drum.cpp's ctl.state): each change
+ * is reported ("STATE t=... state=N") with a TEL line at that instant, from the MCU's own RAM, so a host judges the
+ * latch's time and place from the controller's truth, not from its polls */
+static int opt_state_addr = -1;
+static int state_seen = -1;
+static double force_max_g = -1e300, act_max_mm = -1e300; /* the largest since the last TEL line */
+
+static void print_tel(void)
+{
+    double f = mega_force_g(), x = act_steps / opt_act_steps_per_mm;
+    if (f > force_max_g) force_max_g = f;
+    if (x > act_max_mm) act_max_mm = x;
+    printf("TEL t=%.6f cycle=%llu drum_steps=%lld drum_dir=%d act_steps=%lld act_mm=%.4f force_g=%.3f "
+           "index=%u en=%d steps_disabled=%llu drum_turn=%.5f ee_writes=%llu force_max_g=%.3f act_max_mm=%.4f\n",
+           sim_s(), (unsigned long long)avr->cycle, (long long)drum_steps, drum_dir, (long long)act_steps, x, f,
+           index_count, drivers_enabled(), (unsigned long long)steps_disabled,
+           drum_turn_steps / (RIGCTL_DRUM_STEPS_PER_REV_DEF * opt_driver_microsteps), ee_writes, force_max_g,
+           act_max_mm);
+    force_max_g = act_max_mm = -1e300;
+}
+
 static void mega_poll(void)
 {
     static uint64_t next_tel;
+    int rate = atomic_exchange(&hx_rate_req, 0);
+    if (rate) { /* the RATE pin changed: the board powered on again with it (the HX711 too) */
+        opt_hx711_sps = rate;
+        atomic_store(&reset_cause_req, 1);
+        atomic_store(&reset_requested, 1);
+    }
+    if (act_windup && avr->cycle - act_step_last_cycle > (uint64_t)(ACT_CATCHUP_MS * 16000.0)) {
+        act_steps += act_windup; /* the coupling catches up: the screw jumps */
+        act_windup = 0;
+        update_home();
+    }
     update_home();
     safety_poll();
     index_sensor_poll();
-    hx711_sample(mega_force_g());
+    double f_now = mega_force_g(), x_now = act_steps / opt_act_steps_per_mm;
+    if (f_now > force_max_g) force_max_g = f_now;
+    if (x_now > act_max_mm) act_max_mm = x_now;
+    hx711_sample(f_now);
     if (avr->cycle >= hx_next_cycle) { /* end of a conversion period: DOUT low = ready */
         hx_next_cycle += hx711_period_cycles();
         if (!hx_ready) {
             double f = hx711_filtered_g();
-            long raw = opt_loadcell_offset + lround(f * opt_counts_per_g * atomic_load(&polarity_req) + hx711_noise());
+            long raw = opt_loadcell_offset + lround((f * atomic_load(&cell_gain_req) + atomic_load(&cell_offset_g_req)) *
+                                                    opt_counts_per_g * atomic_load(&polarity_req) + hx711_noise());
             if (raw > 0x7FFFFF) raw = 0x7FFFFF;
             if (raw < -0x800000) raw = -0x800000;
             if (!atomic_load(&hx_frozen_req)) hx_value = (uint32_t)raw & 0xFFFFFFu; /* frozen: the last value again */
@@ -1525,14 +1646,18 @@ static void mega_poll(void)
             hx_dout_set(0);
         }
     }
+    if (opt_state_addr >= 0 && opt_state_addr < (int)avr->ramend) {
+        int state = avr->data[opt_state_addr];
+        if (state != state_seen) {
+            state_seen = state;
+            printf("STATE t=%.6f state=%d\n", sim_s(), state);
+            print_tel(); /* the truth where the state changed */
+            next_tel = avr->cycle + (uint64_t)(opt_tel_ms * 16000.0);
+        }
+    }
     if (avr->cycle >= next_tel) {
         next_tel = avr->cycle + (uint64_t)(opt_tel_ms * 16000.0);
-        printf("TEL t=%.6f cycle=%llu drum_steps=%lld drum_dir=%d act_steps=%lld act_mm=%.4f force_g=%.3f "
-               "index=%u en=%d steps_disabled=%llu drum_turn=%.5f ee_writes=%llu\n",
-               sim_s(), (unsigned long long)avr->cycle, (long long)drum_steps, drum_dir, (long long)act_steps,
-               act_steps / opt_act_steps_per_mm, mega_force_g(), index_count, drivers_enabled(),
-               (unsigned long long)steps_disabled,
-               drum_turn_steps / (RIGCTL_DRUM_STEPS_PER_REV_DEF * opt_driver_microsteps), ee_writes);
+        print_tel();
     }
 }
 
@@ -1916,7 +2041,7 @@ static void usage(void)
                     "[--counts-per-g N] [--loadcell-offset N] [--rear-stop-mm MM] [--tel-ms MS] [--max-seconds S] [--clock-lock FILE] [--host-write-hold-s S] "
                     "[--taxel-ohm OHM] [--mux-ron-ohm OHM] [--mux-c-pf PF] [--sh-c-pf PF] [--aa-c-nf NF] "
                     "[--hx711-sps 10|80] [--hx711-clock-error REL] [--drum-driver-microsteps N] [--no-index-sensor] "
-                    "[--index-bounce N] [--eeprom-write OFFSET:HEX] [--actuator-stall-g G] "
+                    "[--index-bounce N] [--eeprom-write OFFSET:HEX] [--actuator-stall-g G] [--state-addr ADDR] "
                     "FIRMWARE.elf\n");
     exit(2);
 }
@@ -1956,6 +2081,7 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--index-bounce")) opt_index_bounce = atoi(NEXT());
         else if (!strcmp(a, "--hx711-clock-error")) opt_hx711_clock_error = atof(NEXT());
         else if (!strcmp(a, "--eeprom-write")) opt_eeprom_write = NEXT();
+        else if (!strcmp(a, "--state-addr")) opt_state_addr = (int)strtol(NEXT(), NULL, 0);
         else if (a[0] == '-') usage();
         else fw = a;
     }
