@@ -48,13 +48,11 @@ def _save_wrong_calibration(controller: MegaController, scale: float) -> None:
     """The controller's stored calibration record rewritten with its load-cell scale ``scale`` times the one in force,
     its checksum valid (``calibration-scale``)."""
     with controller._lock:
-        rec = dict(controller._valid_calibration() or {
+        rec = controller.eeprom.valid_calibration() or {
             "scale_x100": controller.scale_x100,
-            "actuator_steps_per_mm": controller.holding[wire.HoldingRegister.ACTUATOR_STEPS_PER_MM]})
-        rec["scale_x100"] = int(round(int(rec["scale_x100"]) * scale))
-        rec["crc"] = controller._record_crc(rec)
-        controller.eeprom["calibration"] = rec
-        controller._write_eeprom_file()
+            "actuator_steps_per_mm": controller.holding_register(wire.HoldingRegister.ACTUATOR_STEPS_PER_MM)}
+        controller.eeprom.save(int(round(int(rec["scale_x100"]) * scale)), int(rec["actuator_steps_per_mm"]),
+                               rec.get("zero_raw"))
 
 
 class ModelFaults:
