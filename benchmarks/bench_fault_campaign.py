@@ -22,7 +22,7 @@ harness's report of the state byte in the MCU's RAM (to 0.1 ms), never the host'
 the largest force and the furthest actuator position since the row before (no peak lost between rows).
 
 ``--as-built`` (the default): the rig as docs/hardware builds it, the actuator driver's current limit set so that
-its motor stalls where the spring carries AS_BUILT_STALL_G (<= 1.1 x FORCE_LIMIT); ``--firmware-only``: no stall,
+its motor stalls where the spring carries AS_BUILT_STALL_G (1550 g, < 1.1 x FORCE_LIMIT); ``--firmware-only``: no stall,
 the firmware's channels alone.
 
 Under simavr the cores run as fast as the CPU and the host allow (HilRig(paced=False): the rig's one clock,
@@ -84,9 +84,10 @@ def _probe_s(rate_sps: int) -> float:
     return wire.probe_time_s(rate_sps)
 
 
-#: the actuator driver's stall as built (docs/hardware: its current limit), g of spring force: <= 1.1 x FORCE_LIMIT_G
-#: with the motor's tolerance inside it
-AS_BUILT_STALL_G = 1600.0
+#: the actuator driver's stall as built (docs/hardware: its current limit), g of spring force: above FORCE_LIMIT_G and
+#: the largest setpoint (1500 g), 100 g under 1.1 x FORCE_LIMIT_G for the contact's ripple (the drum's runout: 1653 g
+#: was measured on a stall at 1600 g) and the stall's spread
+AS_BUILT_STALL_G = 1550.0
 
 
 def _probe_spec(name: str) -> FaultSpec:

@@ -109,8 +109,10 @@ class Case:
 
 
 def draw_case(seed: int, faults: Sequence[str] | None = None, draw: str = "v2") -> Case:
-    """The case of ``seed`` (an int >= 0), its fault drawn from ``faults`` (default :data:`CAMPAIGN_FAULTS`, the same
-    on every rig; ``--faults`` narrows it); ``draw="v1"``: the draw of before issue 75 (default faults
+    """The case of ``seed`` (an int >= 0), its fault from ``faults`` (default :data:`CAMPAIGN_FAULTS`, the same on
+    every rig; ``--faults`` narrows it): the one at ``seed`` modulo their number (sorted), so consecutive seeds draw
+    every fault in turn; its value, moment, rig and forces drawn from the seed; ``draw="v1"``: the draw of before issue
+    75 (the fault drawn at random too; default faults
     :data:`CAMPAIGN_FAULTS_V1`, plate swaps of 0.25-6 kg/mm), which the cases fixed then are replayed with. Raises
     ValueError for an empty ``faults`` or an unknown ``draw``."""
     if draw not in ("v1", "v2"):
@@ -120,7 +122,10 @@ def draw_case(seed: int, faults: Sequence[str] | None = None, draw: str = "v2") 
     if not names:
         raise ValueError("no fault to draw from")
     rng = np.random.default_rng([int(seed), 55])
-    fault = names[int(rng.integers(len(names)))]
+    drawn = int(rng.integers(len(names)))
+    # v2: the fault by the seed's place in the list, so any len(names) consecutive seeds draw every fault once (a
+    # campaign of N >= len(names) cases draws them all, whatever its first seed); the rest of the case as drawn
+    fault = names[drawn] if draw == "v1" else names[int(seed) % len(names)]
     value = None
     if fault in value_draws:
         low, high, log = value_draws[fault]

@@ -1147,7 +1147,10 @@ class RigModel:
                 va = min(va, max(0.0, gap + stall_g / stiffness - self._actuator_mm) / (n * dt))
             self._still_ms = self._still_ms + n if va == 0.0 else 0
             if self._windup_mm and self._still_ms >= ACTUATOR_CATCHUP_MS:  # the coupling catches up: the screw jumps
-                self._actuator_mm = min(max(self._actuator_mm + self._windup_mm, 0.0), travel)
+                to = min(max(self._actuator_mm + self._windup_mm, 0.0), travel)
+                if stall_g > 0 and self._windup_mm > 0:  # the motor drives the catch-up: no further than its stall
+                    to = min(to, max(self._actuator_mm, gap + stall_g / stiffness))
+                self._actuator_mm = to
                 self._windup_mm = 0.0
             if self.actuator_lost or self.actuator_slip:  # lost steps never return; a slip winds the coupling up
                 va *= 1.0 - min(1.0, max(0.0, self.actuator_lost))

@@ -105,9 +105,9 @@ FIXED = {
 #: open cases of the campaign (strict xfail: a fixed one must move to FIXED), on the rig as built (--as-built: the
 #: driver's stall at 1600 g), the draw of issue 75 (every fault of the bill of materials)
 FOUND: dict[int, str] = {
-    5524: "coupling-slip=41.66% while a 1075 g trial runs (809 g/mm, 80 SPS): the coupling winds up while the loop "
-          "drives, catches up when the motor holds and the screw jumps: true 1877 g; no stall bounds a jump (the "
-          "motor did not push it); the rig's bound is a coupling that cannot slip (docs/safety.md, FMEA)",
+    5501: "coupling-slip=23.09% during HOME (505 g/mm, 10 SPS): the coupling wound up 0.43 mm while HOME drove and "
+          "caught up once the motor held: 0.430 mm towards the sensor 0.03 s after a latch (the coupling's jump, no "
+          "step of the controller's; the class of 5524)",
 }
 
 
@@ -120,7 +120,8 @@ def test_a_fixed_seed_slice_of_the_campaign_on_the_model_rig():
     ran to the end."""
     out = bench("--cases", str(MODEL_SLICE), "--seed", str(SLICE_SEED), timeout_s=1200)
     assert out["cases"] == MODEL_SLICE and out["not_run"] == 0, out["not_run_cases"]
-    new = [v for v in out["violations"] if v["seed"] not in FOUND and v["seed"] not in FIXED]
+    new = [v for v in out["violations"] if v["seed"] not in FOUND and v["seed"] not in FIXED
+           and v["seed"] not in FIXED_AS_BUILT]
     assert new == [], json.dumps(new, indent=1)
     assert out["worst_true_force_g"] > 0
     assert "open: FaultAtOpen" not in out["outcomes"] and out["outcomes"].get("completed", 0) > 0, out["outcomes"]
@@ -140,6 +141,20 @@ def _replay(seed: int, *args: str) -> list:
 def test_a_violation_the_campaign_found_holds_now(seed):
     """The case of ``seed`` (``bench_fault_campaign.py --replay SEED``) breaks no invariant (FIXED says what it did)."""
     assert _replay(seed, "--draw", "v1", "--firmware-only") == [], FIXED[seed]
+
+
+#: violations found on the draw of issue 75, held since, on the rig as built (each replayed so)
+FIXED_AS_BUILT: dict[int, str] = {
+    5524: "coupling-slip=41.66% while a 1075 g trial runs (809 g/mm, 80 SPS): the coupling wound up while the loop "
+          "drove and caught up at once when the motor held: true 1877 g; held (1555 g) since the catch-up is the "
+          "motor's push, bounded by the driver's stall as built (docs/hardware: 1550 g)",
+}
+
+
+@pytest.mark.parametrize("seed", sorted(FIXED_AS_BUILT))
+def test_a_violation_of_the_bom_draw_holds_as_built(seed):
+    """The case of ``seed`` on the rig as built breaks no invariant (FIXED_AS_BUILT says what it did)."""
+    assert _replay(seed) == [], FIXED_AS_BUILT[seed]
 
 
 @pytest.mark.parametrize("seed", sorted(FOUND))

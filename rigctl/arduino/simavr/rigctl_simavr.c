@@ -1621,7 +1621,13 @@ static void mega_poll(void)
         atomic_store(&reset_requested, 1);
     }
     if (act_windup && avr->cycle - act_step_last_cycle > (uint64_t)(ACT_CATCHUP_MS * 16000.0)) {
-        act_steps += act_windup; /* the coupling catches up: the screw jumps */
+        int64_t to = act_steps + act_windup; /* the coupling catches up: the screw jumps */
+        if (act_windup > 0 && opt_stall_g > 0.0) { /* the motor drives the catch-up: no further than its stall */
+            int64_t stall = (int64_t)floor((opt_contact_mm + opt_stall_g / atomic_load(&opt_spring_k)) *
+                                           opt_act_steps_per_mm);
+            if (to > stall) to = stall > act_steps ? stall : act_steps;
+        }
+        act_steps = to;
         act_windup = 0;
         update_home();
     }
