@@ -110,8 +110,10 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
         from rigctl.acquisition.safety import operator_name
 
         acknowledge = (ack.strip(), operator_name())
+    lines = _SkipFolder(click.echo)
     report = run(source, checks=checks or None, host_config_path=config_path, seed=seed, rest_s=rest_s,
-                 save=save, on_result=None if as_json else lambda r: click.echo(r.line()), acknowledge=acknowledge)
+                 save=save, on_result=None if as_json else lines.add, acknowledge=acknowledge)
+    lines.flush()
     if as_json:
         click.echo(json.dumps(report.to_dict(), indent=2))
     else:
@@ -123,3 +125,30 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
         click.echo(f"not checked: {', '.join(r.name for r in not_run)} could not run (exit 1)", err=True)
     if not report.ok or not_run:
         raise SystemExit(1)
+
+
+class _SkipFolder:
+    """Prints the checks' lines as they come, except that consecutive skips for one reason become one line
+    (``SKIP  a, b, c (3 checks): <reason>``): a rig that did not open skipped 16 checks with 16 copies of its reason."""
+
+    def __init__(self, echo) -> None:
+        self.echo = echo
+        self.skips: list = []
+
+    def add(self, result) -> None:
+        if result.status == "skip" and (not self.skips or self.skips[-1].summary == result.summary):
+            self.skips.append(result)
+            return
+        self.flush()
+        if result.status == "skip":
+            self.skips.append(result)
+        else:
+            self.echo(result.line())
+
+    def flush(self) -> None:
+        if len(self.skips) == 1:
+            self.echo(self.skips[0].line())
+        elif self.skips:
+            names = ", ".join(r.name for r in self.skips)
+            self.echo(f"SKIP  {names} ({len(self.skips)} checks): {self.skips[0].summary}")
+        self.skips = []

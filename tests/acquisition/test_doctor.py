@@ -351,7 +351,9 @@ def test_cli_doctor_inprocess_passes_and_stores_the_dated_report(tmp_path):
     assert p.returncode == 0, p.stdout + p.stderr
     assert "NOT_HOMED" not in p.stderr and "EEPROM" not in p.stderr, p.stderr  # no alarm above a passing report
     lines = p.stdout.splitlines()
-    assert len(lines) == len(doctor.check_names()) + 1
+    # a line a check, but consecutive skips for one reason, which share a line ("SKIP  a, b (2 checks): why")
+    named = [n for line in lines[:-1] for n in line.split(":")[0].split(None, 1)[1].split(" (")[0].split(", ")]
+    assert sorted(named) == sorted(doctor.check_names()), p.stdout
     assert all(line.split()[0] in ("PASS", "SKIP") for line in lines[:-1]), p.stdout
     assert lines[-1].startswith("inprocess rig:") and "0 failed" in lines[-1]
     stored = load_rig_config(cfg)["doctor"]["inprocess"]
@@ -699,3 +701,24 @@ def test_the_report_says_which_checks_could_not_run():
         doctor.CheckResult("e-stop", "pass", "released")])
     assert [r.name for r in rep.not_run(named=False)] == ["link"]
     assert [r.name for r in rep.not_run(named=True)] == ["link", "usb-serial"]
+
+
+def test_skips_for_one_reason_share_one_line():
+    """Issue 79 item 7: a rig that did not open printed its reason on 16 SKIP lines; consecutive skips for one reason
+    now share a line naming every check, other lines print as they come."""
+    from rigctl.cli.doctor import _SkipFolder
+
+    out: list[str] = []
+    folder = _SkipFolder(out.append)
+    why = "the rig did not open (port busy)"
+    results = [doctor.CheckResult("link", "fail", "no answer", fix="free the port"),
+               *(doctor.CheckResult(n, "skip", why) for n in ("drum-speed", "force-step", "e-stop")),
+               doctor.CheckResult("usb-serial", "skip", "simulated boards have no USB serial number"),
+               doctor.CheckResult("hx711-rate", "pass", "80 SPS")]
+    for r in results:
+        folder.add(r)
+    folder.flush()
+    assert out == ["FAIL  link: no answer -> fix: free the port",
+                   f"SKIP  drum-speed, force-step, e-stop (3 checks): {why}",
+                   "SKIP  usb-serial: simulated boards have no USB serial number",
+                   "PASS  hx711-rate: 80 SPS"]
