@@ -94,7 +94,7 @@ from rigctl.storage.recording_files import (
     read_recording_file,
 )
 from rigctl.storage.segmentation import Segmentation, SegmentSpec, outlier_warnings, parse_segment, segment
-from rigctl.storage.time_column import grid_text, onto_grid
+from rigctl.storage.time_column import gaps_text, grid_text, onto_grid
 
 __all__ = [
     "RecordingImportError", "ImportedTrial", "ImportOptions", "FORMATS", "read_recording_file",
@@ -548,6 +548,7 @@ class _Import:
             self.notes.append(grid_text(path.name, grid))
             self.regridded = True
         self._name_choices(path, meta)
+        self._name_gaps(path, meta)
         self.steps["read"].append({"file": str(path), **meta, "rate_hz": src_rate, "blocks": len(blocks)})
         attrs = {"source_file": path.name, "source_format": meta["format"], "source_rate_hz": src_rate,
                  **{k: str(v) for k, v in extra.items()}}
@@ -557,6 +558,17 @@ class _Import:
                 lab.update({k: (str(v) if k == "texture" else float(v)) for k, v in block_labels[bi].items()})
             self._add_block(path, bi, len(blocks), self._counts(path, block, src_rate), lab,
                             {**attrs, **({"source_block": bi} if len(blocks) > 1 else {})})
+
+    def _name_gaps(self, path: Path, meta: dict[str, Any]) -> None:
+        """Name the holes an NWB series' or an XDF stream's own time stamps show (as a CSV time column's are) and
+        the frames rigctl's XDF stream lost: the samples around them are joined back to back."""
+        gaps, lost = meta.get("gaps") or [], int(meta.get("lost_frames") or 0)
+        if gaps:
+            self.notes.append(f"{path.name}: {len(gaps)} gap(s) in the time stamps ({gaps_text(gaps)}): the samples "
+                              "on either side are joined back to back (each gap closed; recorded in the import steps)")
+        if lost:
+            self.notes.append(f"{path.name}: {lost} frame(s) lost (the stream's frame numbers skip): the frames on "
+                              "either side are joined back to back")
 
     def _name_choices(self, path: Path, meta: dict[str, Any]) -> None:
         """Name what was chosen for the user: the series of a file that holds several, a CSV's unusual dialect."""

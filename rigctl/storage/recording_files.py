@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from rigctl.storage.time_column import TIME_UNITS, TimeColumnError, rising_counter, unit_of_name
+from rigctl.storage.time_column import TIME_UNITS, TimeColumnError, rising_counter, stamp_gaps, unit_of_name
 
 __all__ = ["RecordingImportError", "FORMATS", "NAN_POLICIES", "read_recording_file", "fill_nan", "check_whole_counts"]
 
@@ -256,6 +256,8 @@ def _read_nwb(path: Path, variable: str | None) -> tuple[np.ndarray, float | Non
             rate = 1.0 / float(np.median(np.diff(np.asarray(ts.timestamps[()]))))
         meta = {"timeseries": ts.name, "variable": ts.name, "candidates": sorted(series), "unit": ts.unit,
                 "conversion": float(ts.conversion)}
+        if ts.timestamps is not None and len(ts.timestamps) > 2:  # stamped samples: a hole in them is named
+            meta["gaps"] = stamp_gaps(np.asarray(ts.timestamps[()], np.float64), rate)
         if rate and nwb.trials is not None and ts.name == "taxels":
             meta["trials"] = _nwb_trials(nwb.trials.to_dataframe(), float(ts.starting_time or 0.0), float(rate),
                                          data.shape[0])
@@ -334,7 +336,9 @@ def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = 
         from rigctl.storage.xdf import read_xdf
 
         arr, rate, xdf_meta = read_xdf(path, variable, RecordingImportError)
-        xdf_meta.pop("frame_seq", None)
+        seq = xdf_meta.pop("frame_seq", None)
+        if seq is not None and len(seq) > 1:  # rigctl's own stream: frames lost on the way, by their numbers
+            xdf_meta["lost_frames"] = int(np.sum(np.clip(np.diff(np.asarray(seq, np.int64)) - 1, 0, None)))
         meta.update(xdf_meta)
     else:
         arr, rate, nwb_meta = _read_nwb(path, variable)

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["MAX_GRID_FACTOR", "RATE_AGREEMENT", "REPEATED_STAMPS", "TIME_UNITS", "TimeColumnError", "grid_text",
-           "onto_grid", "rising_counter", "unit_of_name"]
+           "gaps_text", "onto_grid", "rising_counter", "stamp_gaps", "unit_of_name"]
 
 #: seconds per unit of a time column
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
@@ -144,9 +144,7 @@ def onto_grid(x: np.ndarray, times_s: np.ndarray, rate_hz: float | None, where: 
         y[:, c] = np.interp(grid, t, x[:, c])
     period = 1.0 / rate
     dev_ms = (dt - period) * 1e3
-    spread = 1.4826 * float(np.median(np.abs(dt - np.median(dt))))  # the jitter's sd, robust to the gaps themselves
-    gap_i = np.flatnonzero(dt > 1.5 * period + 6.0 * spread)
-    gaps = [{"at_s": float(t[i] - t[0]), "length_ms": float(dt[i] * 1e3)} for i in gap_i]
+    gaps = stamp_gaps(t, rate)
     record = {"method": "linear interpolation (numpy.interp) onto an even grid", "rate_hz": rate,
               "rate_from": "--rate" if rate_hz else "the median spacing of the time column", "unit": unit,
               "samples_in": int(t.size), "samples_out": n, "jitter_ms_sd": float(np.std(dev_ms)),
@@ -155,11 +153,31 @@ def onto_grid(x: np.ndarray, times_s: np.ndarray, rate_hz: float | None, where: 
     return y, rate, record
 
 
+def stamp_gaps(stamps_s: np.ndarray, rate_hz: float | None = None) -> list[dict[str, float]]:
+    """The gaps among time stamps (seconds): spacings over 1.5 periods (of ``rate_hz``, else the median spacing's)
+    plus 6 sd of the jitter (robust: the median absolute deviation), each ``{"at_s": from the first stamp,
+    "length_ms": the spacing}``. For every importer's stamps: a CSV's time column, an NWB series' timestamps, an XDF
+    stream's."""
+    t = np.asarray(stamps_s, np.float64)
+    if t.size < 3:
+        return []
+    dt = np.diff(t)
+    period = 1.0 / float(rate_hz) if rate_hz else float(np.median(dt))
+    spread = 1.4826 * float(np.median(np.abs(dt - np.median(dt))))  # the jitter's sd, robust to the gaps themselves
+    gap_i = np.flatnonzero(dt > 1.5 * period + 6.0 * spread)
+    return [{"at_s": float(t[i] - t[0]), "length_ms": float(dt[i] * 1e3)} for i in gap_i]
+
+
+def gaps_text(gaps: list[dict[str, float]]) -> str:
+    """The first three gaps in words (``15.2 ms at 1.500 s, ...``)."""
+    return ", ".join(f"{g['length_ms']:.1f} ms at {g['at_s']:.3f} s" for g in gaps[:3]) + (", ..." if len(gaps) > 3
+                                                                                         else "")
+
+
 def grid_text(name: str, record: Mapping[str, Any]) -> str:
     """One line for the user: what :func:`onto_grid` did to one file."""
     gaps = record["gaps"]
-    shown = ", ".join(f"{g['length_ms']:.1f} ms at {g['at_s']:.3f} s" for g in gaps[:3]) + (", ..." if len(gaps) > 3
-                                                                                          else "")
+    shown = gaps_text(gaps)
     repeated = record.get("repeated_stamps")
     unit = record.get("unit", "s")
     return (f"{name}: time column resampled onto the {record['rate_hz']:g} Hz grid ({record['rate_from']}"

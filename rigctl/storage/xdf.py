@@ -27,6 +27,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 from rigctl.core.errors import describe_error
+from rigctl.storage.time_column import stamp_gaps
 
 __all__ = ["XdfStream", "read_xdf", "stream_info_xml", "write_xdf"]
 
@@ -85,7 +86,8 @@ def read_xdf(path: Path, variable: str | None, error: type[Exception]) -> tuple[
     stamps = np.asarray(stream["time_stamps"], dtype=np.float64)
     rate = float(_first(info, "nominal_srate", 0) or 0) or None
     meta: dict[str, Any] = {"stream": str(_first(info, "name", "?")), "stream_type": str(_first(info, "type", "")),
-                            "first_timestamp": float(stamps[0]), "last_timestamp": float(stamps[-1])}
+                            "first_timestamp": float(stamps[0]), "last_timestamp": float(stamps[-1]),
+                            "gaps": stamp_gaps(stamps, rate)}
     if _is_rigctl_taxels(info):
         meta["frame_seq"] = data[:, -1].astype(np.int64)
         data = data[:, :-1]

@@ -1,0 +1,57 @@
+"""Gaps named in every importer that has time stamps (issue 77 item 5): a 0.5 s hole in an NWB series'
+timestamps and 200 frames lost in an XDF stream vanished on import (the samples joined back to back, exit 0 without
+a word) while the same hole in a CSV time column is named. Now each is named on the terminal like the CSV's; a file
+without holes says nothing."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rigctl.cli import main
+
+
+def _import(path, out, *extra):
+    r = CliRunner().invoke(main, ["import", str(path), "--out", str(out), "--texture", "A", *map(str, extra)])
+    return r.exit_code, r.output
+
+
+def _nwb(path, stamps):
+    from pynwb import NWBHDF5IO, NWBFile, TimeSeries
+
+    rng = np.random.default_rng(0)
+    with NWBHDF5IO(str(path), "w") as io:
+        nwb = NWBFile(session_description="x", identifier="x", session_start_time=datetime.now(UTC))
+        nwb.add_acquisition(TimeSeries(name="pressure", data=rng.integers(100, 900, (stamps.size, 4)).astype(float),
+                                       unit="counts", timestamps=stamps))
+        io.write(nwb)
+    return path
+
+
+def test_a_hole_in_nwb_timestamps_is_named(tmp_path):
+    stamps = np.arange(2000) / 1000.0
+    stamps[1200:] += 0.5  # half a second lost at 1.2 s
+    rc, out = _import(_nwb(tmp_path / "hole.nwb", stamps), tmp_path / "h.h5")
+    assert rc == 0, out
+    assert "hole.nwb: 1 gap(s) in the time stamps (501.0 ms at 1.199 s)" in out, out
+    rc, out = _import(_nwb(tmp_path / "even.nwb", np.arange(2000) / 1000.0), tmp_path / "e.h5")
+    assert rc == 0 and "gap" not in out, out
+
+
+def test_frames_lost_in_an_xdf_stream_are_named(tmp_path):
+    pytest.importorskip("pyxdf")
+    from rigctl.storage.xdf import XdfStream, stream_info_xml, write_xdf
+
+    rng = np.random.default_rng(1)
+    n = 1500
+    taxels = rng.integers(0, 1024, (n, 4))
+    stamps = 1000.0 + np.arange(n) / 500.0
+    stamps[700:] += 200 / 500.0  # 200 frames lost at 1.4 s
+    write_xdf(tmp_path / "rec.xdf", [XdfStream(stream_info_xml("tip", "Tactile", 4, 500.0, "int16", "tip-1"),
+                                               "int16", taxels, stamps)])
+    rc, out = _import(tmp_path / "rec.xdf", tmp_path / "x.h5")
+    assert rc == 0, out
+    assert "rec.xdf: 1 gap(s) in the time stamps (402.0 ms at 1.398 s)" in out, out
