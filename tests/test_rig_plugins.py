@@ -325,3 +325,28 @@ def test_rigctls_own_rigs_without_the_group_in_the_metadata(monkeypatch):
             rig_plugins.load_rig_factory("csvboard")
     finally:
         rig_plugins.rig_entries.cache_clear()
+
+
+def test_a_board_repeating_every_fifth_reading_is_counted_not_complete(installed_plugins, tmp_path, monkeypatch):
+    """Issue 77 item 4: a plugin board that repeats every 5th reading (2,396 of 12,000 rows held) read "6/6 complete,
+    0 dropped" from acquire and info. The repeated samples (identical on every taxel to the one before) are counted
+    per trial at acquisition, whatever the source, named in the run's summary and by rigctl info."""
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
+    lines = [",".join(str((i * 7) % 900 + 10 * c) for c in range(4)) for i in range(900)]
+    held = [lines[i - 1] if i % 5 == 4 else line for i, line in enumerate(lines)]  # every 5th: the one before again
+    board = tmp_path / "board.csv"
+    board.write_text("\n".join(held) + "\n")
+    proto = tmp_path / "p.toml"
+    proto.write_text(LOSSY_PROTOCOL)
+    r = CliRunner().invoke(main, ["acquire", str(proto), "--rig", "csvboard", "--rig-option", f"file={board}",
+                                  "--rig-option", "drum=inprocess", "--out", str(tmp_path / "s.h5"), "--quiet"])
+    assert r.exit_code == 0 and "trials complete: 2/2" in r.output, r.output
+    with open_session(tmp_path / "s.h5") as s:
+        truth = sum(int(np.all(np.diff(np.asarray(s.trial(t).taxels, np.int64), axis=0) == 0, axis=1).sum())
+                    for t in s.completed_ids())
+        samples = sum(s.trial(t).n_samples for t in s.completed_ids())
+    assert 0.15 * samples < truth < 0.25 * samples, (truth, samples)
+    assert f"repeated samples: {truth} (in 2 trials)" in r.output, r.output
+    info = CliRunner().invoke(main, ["info", str(tmp_path / "s.h5")])
+    assert f"{truth} repeated samples (identical on every taxel to the one before) in 2 trials" in info.output, \
+        info.output

@@ -77,7 +77,7 @@ from rigctl.acquisition.safety import Acknowledgement, Latch, operator_name
 from rigctl.core.errors import describe_error
 from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.core.provenance import PROVENANCE_ATTR, provenance_json
-from rigctl.core.trial import PlannedTrial, TrialData
+from rigctl.core.trial import REPEATED_SAMPLES_FLAG, PlannedTrial, TrialData, repeated_samples
 from rigctl.storage.session import SessionError, SessionWriter, TrialStatus
 
 log = logging.getLogger(__name__)
@@ -159,6 +159,9 @@ class RunSummary:
     samples: int = 0
     dropped_frames: int = 0
     crc_errors: int = 0
+    #: samples identical on every taxel to the one before (rigctl.core.trial.repeated_samples), in ``held`` trials
+    repeated: int = 0
+    held: int = 0
     stopped: bool = False
     link_lost: str = ""
     latched: str = ""
@@ -175,8 +178,9 @@ class RunSummary:
             return ("  nothing recorded now: every planned trial was already complete" if self.complete == self.planned
                     else "  nothing recorded now")
         lossy = f" (in {self.lossy} kept trials)" if self.lossy else ""
-        return (f"  samples: {self.samples}  dropped frames: {self.dropped_frames}{lossy}  "
-                f"CRC errors: {self.crc_errors}")
+        held = f" (in {self.held} trials)" if self.held else ""
+        return (f"  samples: {self.samples}  dropped frames: {self.dropped_frames}{lossy}  repeated samples: "
+                f"{self.repeated}{held}  CRC errors: {self.crc_errors}")
 
     def lines(self) -> list[str]:
         if self.latched:
@@ -661,6 +665,7 @@ class _Run:
             break
         self.link_failures, self.link_down_since = 0, None
         data.attrs["attempts"] = attempt
+        data.attrs["repeated_samples"] = repeated = repeated_samples(data.taxels)  # any source: counted, kept
         labels = recorded_labels(planned, data.attrs)  # a replayed trial: the source trial's condition
         self._write(f"writing trial {planned.trial_id}",
                     lambda: self.writer.write_trial(planned.trial_id, data, labels=labels or None), planned, index)
@@ -668,6 +673,10 @@ class _Run:
         summary.samples += data.n_samples
         summary.dropped_frames += data.dropped_frames
         summary.crc_errors += data.crc_errors
+        summary.repeated, summary.held = summary.repeated + repeated, summary.held + bool(repeated)
+        if repeated > REPEATED_SAMPLES_FLAG * data.n_samples:
+            log.warning("%s: %d of %d samples repeat the one before on every taxel (a held reading?)", where,
+                        repeated, data.n_samples)
         if data.dropped_frames:
             summary.lossy += 1
             log.warning("%s kept with %d lost frames (max_dropped_frames = %d)", where, data.dropped_frames,

@@ -20,7 +20,8 @@ _STATUS = {int(s): s.name.lower() for s in TrialStatus}
 #: counts from ``/recording/index`` instead
 _SHOWN = ("n_samples", "dropped_frames", "crc_errors", "host_rate_hz", "force_mean_g", "speed_mean_mm_s",
           "index_source", "drum_speed_index_mm_s", "drum_speed_mismatch", "drum_speed_warning", "error",
-          "encoded_on_board", "scan_duration_s", "tracker_rate_hz", "tracker_dropouts", "floored_windows")
+          "encoded_on_board", "scan_duration_s", "tracker_rate_hz", "tracker_dropouts", "floored_windows",
+          "repeated_samples")
 #: a handheld scan's measured fields (its attributes): shown per trial, and the planned duration replaced by the scan's
 HANDHELD_FIELDS = ("scan_duration_s", "tracker_rate_hz", "tracker_dropouts", "floored_windows")
 
@@ -82,6 +83,8 @@ def session_summary(path: str | Path, *, keep_nonfinite: bool = False,
             "recorded_s": sum(t["duration_s"] for t in done),
             "dropped_frames": sum(t["dropped_frames"] for t in done),
             "crc_errors": sum(t["crc_errors"] for t in done),
+            "repeated_samples": sum(t.get("repeated_samples", 0) for t in done),
+            "held_trials": sum(bool(t.get("repeated_samples")) for t in done),
         }
         attrs_root = {k: s.attrs.get(k) for k in ("schema_version", "session_id", "created_utc", "kind",
                                                   "rigctl_version")}
@@ -131,6 +134,7 @@ def _trial_row(row: Any, report: Any, a: dict | None, index_row: Any) -> dict:
         t["host_rate_hz"] = _num(a.get("host_rate_hz", math.nan))
         t["dropped_frames"] = report.dropped_frames.get(tid, 0)
         t["crc_errors"] = _count(counts["crc_errors"] if index_row is not None else a.get("crc_errors", 0))
+        t["repeated_samples"] = _count(a.get("repeated_samples", 0))  # a held reading, counted when written
         t["force_mean_g"] = _num(a.get("force_mean_g", math.nan))
         t["speed_mean_mm_s"] = _num(a.get("speed_mean_mm_s", math.nan))
         t["index_source"] = str(a.get("index_source", "")) or None
@@ -304,4 +308,6 @@ def info(file, as_json, provenance, keep_nonfinite, progress):
         excluded += f", {tot['encoded_on_board']} encoded on the board"
     click.echo(f"totals: {tot['complete']}/{tot['trials']} trials complete{excluded}, {tot['failed']} failed, "
                f"{tot['pending']} pending; {tot['samples']} samples over {tot['recorded_s']:.1f} s of trials; "
-               f"{tot['dropped_frames']} dropped frames; {tot['crc_errors']} CRC errors")
+               f"{tot['dropped_frames']} dropped frames; {tot['crc_errors']} CRC errors"
+               + (f"; {tot['repeated_samples']} repeated samples (identical on every taxel to the one before) in "
+                  f"{tot['held_trials']} trials" if tot["repeated_samples"] else ""))

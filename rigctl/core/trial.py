@@ -13,7 +13,11 @@ import numpy as np
 from rigctl.core.onboard import OnboardEncoding
 from rigctl.core.sensor import PAPER_SENSOR, LayoutError, SensorLayout
 
-__all__ = ["PlannedTrial", "TrialData", "lower_envelope_rate_hz"]
+__all__ = ["PlannedTrial", "TrialData", "REPEATED_SAMPLES_FLAG", "lower_envelope_rate_hz", "repeated_samples"]
+
+#: the share of a trial's samples repeating the one before above which the trial is flagged (a board or driver that
+#: holds its last reading: issue 77, 2,396 of 12,000 rows held by a plugin board read "0 dropped")
+REPEATED_SAMPLES_FLAG = 0.01
 
 
 @dataclass(frozen=True)
@@ -190,6 +194,15 @@ class TrialData:
         than 6 samples."""
         assert self.seq is not None and self.host_time_s is not None
         return lower_envelope_rate_hz(self.seq, self.host_time_s, self.layout.sample_rate_hz)
+
+
+def repeated_samples(taxels: np.ndarray) -> int:
+    """Samples (rows of ``taxels``, (n_samples, n_channels)) identical on every channel to the one before: a held
+    reading, counted like a dropped frame. 0 for one channel (a single ADC repeats its value by chance)."""
+    x = np.asarray(taxels)
+    if x.ndim != 2 or x.shape[1] < 2 or x.shape[0] < 2:
+        return 0
+    return int(np.count_nonzero(np.all(x[1:] == x[:-1], axis=1)))
 
 
 def lower_envelope_rate_hz(seq: np.ndarray, host_time_s: np.ndarray, rate_hz: float) -> float:

@@ -85,7 +85,7 @@ import numpy as np
 from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.core.sensor import LayoutError, SensorLayout, parse_layout
 from rigctl.core.textures import TextureSet, texture_set_from_labels
-from rigctl.core.trial import TrialData
+from rigctl.core.trial import REPEATED_SAMPLES_FLAG, TrialData, repeated_samples
 from rigctl.storage.recording_files import (
     FORMATS,
     NAN_POLICIES,
@@ -598,6 +598,10 @@ class _Import:
             self.out_rate = rate
         elif not math.isclose(self.out_rate, rate, rel_tol=1e-9):
             raise RecordingImportError(f"{path}: {rate:g} Hz, earlier files are {self.out_rate:g} Hz: give --resample")
+        held = repeated_samples(block)
+        if held > REPEATED_SAMPLES_FLAG * block.shape[0]:  # a board or logger that held its reading: named
+            self.notes.append(f"{path.name}: {held} of {block.shape[0]} samples repeat the one before on all "
+                              f"{block.shape[1]} channels (a held reading? counted per trial: rigctl info)")
         counts, clipped = to_counts(x, o.adc_bits, volts_ref=o.volts_ref, scale=o.scale, offset=o.offset,
                                     clip=o.clip, where=str(path))
         self.n_clipped += clipped
@@ -637,7 +641,9 @@ class _Import:
                              "segment_stop_s": b / rate})
                 if cut.period_s is not None:
                     prov["cycle_period_s"] = cut.period_s
-            self.trials.append(ImportedTrial(np.ascontiguousarray(counts[a:b]), lab, {**attrs, **prov}))
+            held = repeated_samples(counts[a:b])  # counted per trial like a dropped frame (rigctl info shows it)
+            self.trials.append(ImportedTrial(np.ascontiguousarray(counts[a:b]), lab,
+                                             {**attrs, **prov, **({"repeated_samples": held} if held else {})}))
 
     def add_or_refuse(self, path: Path, rx: re.Pattern[str] | None) -> None:
         """:meth:`add_file`, or with a file refused (RecordingImportError), nothing of it kept: the file and the

@@ -55,3 +55,17 @@ def test_frames_lost_in_an_xdf_stream_are_named(tmp_path):
     rc, out = _import(tmp_path / "rec.xdf", tmp_path / "x.h5")
     assert rc == 0, out
     assert "rec.xdf: 1 gap(s) in the time stamps (402.0 ms at 1.398 s)" in out, out
+
+
+def test_held_rows_in_a_csv_are_counted_and_named(tmp_path):
+    """A logger that held every 5th reading: the import names the count, each trial carries it, rigctl info says it
+    (issue 77 item 4: they imported as good rows)."""
+    rng = np.random.default_rng(2)
+    x = rng.integers(100, 900, (1000, 6))
+    x[4::5] = x[3::5]  # every 5th row repeats the one before
+    p = tmp_path / "held__A.csv"
+    np.savetxt(p, x, fmt="%d", delimiter=",")
+    rc, out = _import(p, tmp_path / "h.h5", "--rate", 1000)
+    assert rc == 0 and "held__A.csv: 200 of 1000 samples repeat the one before on all 6 channels" in out, out
+    info = CliRunner().invoke(main, ["info", str(tmp_path / "h.h5")])
+    assert "200 repeated samples (identical on every taxel to the one before) in 1 trials" in info.output, info.output
