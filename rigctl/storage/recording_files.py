@@ -19,7 +19,14 @@ from typing import Any
 
 import numpy as np
 
-from rigctl.storage.time_column import TIME_UNITS, TimeColumnError, rising_counter, stamp_gaps, unit_of_name
+from rigctl.storage.time_column import (
+    TIME_UNITS,
+    TimeColumnError,
+    explicit_unit,
+    rising_counter,
+    stamp_gaps,
+    unit_of_name,
+)
 
 __all__ = ["RecordingImportError", "FORMATS", "NAN_POLICIES", "read_recording_file", "fill_nan", "check_whole_counts"]
 
@@ -171,8 +178,9 @@ def _read_csv(path: Path, channels: int | None, columns: Sequence[Any] | None, t
     if time_i is not None:
         name = header[time_i] if header else str(time_i)
         named_unit = unit_of_name(name) if header else None
-        if time_unit is not None and named_unit is not None and time_unit != named_unit:
-            raise TimeColumnError(f"{path}: the time column {name!r} says {named_unit} by its name, --time-unit says "
+        spelled = explicit_unit(name) if header else None
+        if time_unit is not None and spelled is not None and time_unit != spelled:
+            raise TimeColumnError(f"{path}: the time column {name!r} says {spelled} by its name, --time-unit says "
                                   f"{time_unit}: give the unit it holds")
         unit = time_unit or named_unit
         if unit is None:

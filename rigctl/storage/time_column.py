@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["MAX_GRID_FACTOR", "RATE_AGREEMENT", "REPEATED_STAMPS", "TIME_UNITS", "TimeColumnError", "grid_text",
-           "gaps_text", "onto_grid", "rising_counter", "stamp_gaps", "unit_of_name"]
+           "explicit_unit", "gaps_text", "onto_grid", "rising_counter", "stamp_gaps", "unit_of_name"]
 
 #: seconds per unit of a time column
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
@@ -68,6 +68,15 @@ def unit_of_name(name: str) -> str | None:
     if base not in _BASES:
         return None
     return _WORDS.get(unit or "")
+
+
+def explicit_unit(name: str) -> str | None:
+    """The unit a column's name spells out (``time_ms``, ``millis``, ``seconds``, ``Time (us)``), or None: a plain
+    ``time``, ``timestamp`` or ``t`` is read as seconds by :func:`unit_of_name` but says no unit, so ``--time-unit``
+    sets it without a conflict (a lab's ``timestamp`` in ms)."""
+    unit = unit_of_name(name)
+    text = str(name).strip().lower()
+    return None if unit is None or text in _BASES else unit
 
 
 def rising_counter(column: np.ndarray) -> bool:

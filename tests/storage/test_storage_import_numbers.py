@@ -142,7 +142,8 @@ def test_label_units_converted_and_implausible_ones_warned(tmp_path, monkeypatch
     """Feed rates in mm/min (1200-6000) imported as mm/s without a word; now {speed_mm_min} converts them and
     speeds read in the wrong unit are warned with the windows they give."""
     monkeypatch.chdir(tmp_path)
-    x = np.full((300, 9), 500)
+    # (not one value throughout: samples identical to the one before are held readings, named: issue 77 item 4)
+    x = 500 + np.random.default_rng(0).integers(-3, 4, (300, 9))
     for feed in (1200, 6000):
         np.savetxt(f"cnc__A__F{feed}__P2.5.csv", x, delimiter=",", fmt="%d")
     rc, out = _rigctl("import", "cnc__A__F1200__P2.5.csv", "cnc__A__F6000__P2.5.csv", "--rate", 1000,

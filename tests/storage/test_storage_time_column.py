@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from rigctl.storage.session import open_session
-from rigctl.storage.time_column import unit_of_name
+from rigctl.storage.time_column import explicit_unit, unit_of_name
 
 RIGCTL: list[str] = []  # this worker's preloaded rigctl (tests/conftest.py _preloaded_rigctl)
 #: the memory cap of the capped runs, bytes (the issue's: 3 GB of address space)
@@ -61,6 +61,21 @@ def _one_error(out: str) -> str:
     ("stamp", None), ("tx0", None), ("temperature", None), ("ms5", None), ("frame", None)])
 def test_the_names_rigctl_knows(name, unit):
     assert unit_of_name(name) == unit
+    # a plain time/timestamp/t is seconds unless --time-unit says otherwise (no conflict); a spelled unit is its own
+    assert explicit_unit(name) == (None if name in ("time", "t", "timestamp") else unit)
+
+
+def test_a_plain_timestamp_in_ms_takes_time_unit(tmp_path):
+    """A lab's ``timestamp`` column in ms (FabricSlide's spelling): read as seconds it disagrees with --rate (refused,
+    asking for the unit); --time-unit ms reads it, no conflict with the name."""
+    n = 600
+    _csv(tmp_path / "lab__A.csv", ["timestamp", "c0", "c1", "c2", "c3"],
+         np.column_stack([4000 + 2.0 * np.arange(n), _taxels(n)]))
+    rc, out, _ = _run(["import", "lab__A.csv", "--rate", 500, "--texture", "A", "--out", "t.h5"], tmp_path)
+    assert rc == 2 and "imply 0.5 Hz (read as s) but --rate is 500 Hz" in _one_error(out), out
+    rc, out, _ = _run(["import", "lab__A.csv", "--rate", 500, "--texture", "A", "--time-unit", "ms", "--out", "t.h5"],
+                      tmp_path)
+    assert rc == 0 and "stamps in ms" in out, out
 
 
 def test_a_time_us_column_read_as_seconds_is_refused_at_once_under_a_3_gb_cap(tmp_path):
