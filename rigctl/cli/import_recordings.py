@@ -131,11 +131,16 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
         raise UsageProblem(str(exc)) from None
     except (FileExistsError, FileNotFoundError, ValueError) as exc:  # RecordingImportError is a ValueError
         raise click.ClickException(str(exc)) from None
+    from rigctl.storage.ledger import ledger, ledger_lines
+
     for line in report.warnings:
         click.echo(f"warning: {line}", err=True)
+    entries = ledger(report.summary.get("steps") or {})  # every step that changed a value: the one ledger
     if as_json:
-        click.echo(json_text(report.json_summary()))
+        click.echo(json_text({**report.json_summary(), "ledger": entries}))
         return
     if report.table:
         click.echo(report.table)
     click.echo(report.line())
+    for line in ledger_lines(entries):
+        click.echo(f"ledger: {line}")

@@ -11,6 +11,7 @@ import click
 from rigctl.cli.jsonout import json_text
 from rigctl.cli.progress import bars, progress_option, show_bars
 from rigctl.core.progress import ProgressCallback
+from rigctl.storage.ledger import ledger_lines, session_ledger
 from rigctl.storage.session import TrialStatus, open_session
 
 _STATUS = {int(s): s.name.lower() for s in TrialStatus}
@@ -96,6 +97,7 @@ def session_summary(path: str | Path, *, keep_nonfinite: bool = False,
             "rig_mode": s.rig_config.get("mode"),
             "calibration": sorted(s.calibration) if s.calibration else None,
             "trials": trials, "totals": totals,
+            "ledger": session_ledger(s.attrs),  # every step that changed a value on import (rigctl.storage.ledger)
         }
 
 
@@ -311,3 +313,5 @@ def info(file, as_json, provenance, keep_nonfinite, progress):
                f"{tot['dropped_frames']} dropped frames; {tot['crc_errors']} CRC errors"
                + (f"; {tot['repeated_samples']} repeated samples (identical on every taxel to the one before) in "
                   f"{tot['held_trials']} trials" if tot["repeated_samples"] else ""))
+    for line in ledger_lines(summary.get("ledger") or []):
+        click.echo(f"ledger: {line}")

@@ -48,3 +48,31 @@ def test_volts_above_the_reference_are_refused_unless_clip(tmp_path):
     assert rc == 1 and "10 of 600 values are outside" in text and "--volts-ref 5 V" in text, text
     rc, text = _run(p, "--rate", 1000, "--volts-ref", 5, "--texture", "A", "--clip", "--out", tmp_path / "v.h5")
     assert rc == 0 and "10 of 600 values clipped" in text, text
+
+
+def test_one_ledger_printed_by_import_and_shown_by_info(tmp_path):
+    """Every value-changing step in one ledger (issue 77 item 1): the import prints it, --json holds it, rigctl info
+    shows it for the session (text and --json); a file imported as it is has an empty one."""
+    rng = np.random.default_rng(3)
+    x = rng.integers(0, 4096, (400, 4))
+    p = tmp_path / "lab__A.csv"
+    np.savetxt(p, x, fmt="%d", delimiter=",")
+    out = tmp_path / "s.h5"
+    rc, text = _run(p, "--rate", 500, "--resample", 1000, "--texture", "A", "--clip", "--out", out)
+    assert rc == 0, text
+    ledger = [ln for ln in text.splitlines() if ln.startswith("ledger: ")]
+    assert ledger[0].startswith("ledger: resampled 500 -> 1000 Hz") and "value(s) clipped to 0..1023" in ledger[1], text
+    rc, text = _run(p, "--rate", 500, "--resample", 1000, "--texture", "A", "--clip", "--json", "--overwrite",
+                    "--out", out)
+    doc = json.loads(text[text.index("{"):text.rindex("}") + 1])
+    assert [e["step"] for e in doc["ledger"]] == ["resample", "clip"], doc["ledger"]
+    info = CliRunner().invoke(main, ["info", str(out)])
+    assert "ledger: resampled 500 -> 1000 Hz" in info.output and "clipped to 0..1023 (--clip)" in info.output, \
+        info.output
+    info = CliRunner().invoke(main, ["info", str(out), "--json"])
+    assert [e["step"] for e in json.loads(info.output)["ledger"]] == ["resample", "clip"]
+    np.savetxt(tmp_path / "plain__A.csv", rng.integers(100, 900, (400, 4)), fmt="%d", delimiter=",")
+    rc, text = _run(tmp_path / "plain__A.csv", "--rate", 500, "--texture", "A", "--out", tmp_path / "p.h5")
+    assert rc == 0 and "ledger:" not in text, text
+    info = CliRunner().invoke(main, ["info", str(tmp_path / "p.h5"), "--json"])
+    assert json.loads(info.output)["ledger"] == []
