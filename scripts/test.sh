@@ -17,6 +17,8 @@ DEBIAN_PACKAGES=(
   gcc
   # independent Modbus master for tests
   mbpoll
+  # the drum controller's C under cppcheck's MISRA C:2012 addon (tests/firmware/test_fw_misra.py)
+  cppcheck
   # virtual screen and the libraries Qt needs to run offscreen / under Xvfb
   xvfb xauth libegl1 libgl1 libxkbcommon0 libxkbcommon-x11-0 libdbus-1-3 libfontconfig1 libxcb-cursor0 libxcb-icccm4 libxcb-keysyms1
   # a window manager and real X input for the GUI tests under Xvfb (tests/gui/test_gui_x11.py)

@@ -440,6 +440,8 @@ static void test_safety()
         uint16_t tiny[2] = {0, 99}, huge[2] = {0x0098, 0x9681}; // 99 and 10000001
         CHECK(ctl_write_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100_HI, 2, tiny) == RIGCTL_MB_EX_ILLEGAL_VALUE);
         CHECK(ctl_write_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100_HI, 2, huge) == RIGCTL_MB_EX_ILLEGAL_VALUE);
+        uint16_t most_negative[2] = {0x8000, 0x0000}; // INT32_MIN: its negation overflowed (UBSan stops the run)
+        CHECK(ctl_write_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100_HI, 2, most_negative) == RIGCTL_MB_EX_ILLEGAL_VALUE);
         CHECK(ctl_scale_x100(&c) == 430000);
         uint16_t v12 = 41000;
         CHECK(ctl_write_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100, 1, &v12) == 0 && ctl_scale_x100(&c) == 41000);

@@ -36,8 +36,10 @@ static void set_scale(uint16_t *h, int32_t s)
 
 static uint8_t scale_ok(int32_t s)
 {
-    int32_t a = s < 0 ? -s : s;
-    return s != INT32_MIN && a >= RIGCTL_LOADCELL_SCALE_X100_ABS_MIN && a <= RIGCTL_LOADCELL_SCALE_X100_ABS_MAX;
+    int32_t a;
+    if (s == INT32_MIN) return 0; /* before its negation: -INT32_MIN overflows (undefined; cppcheck integerOverflowCond) */
+    a = s < 0 ? -s : s;
+    return a >= RIGCTL_LOADCELL_SCALE_X100_ABS_MIN && a <= RIGCTL_LOADCELL_SCALE_X100_ABS_MAX;
 }
 
 int32_t ctl_scale_x100(const ctl_t *c)
@@ -915,11 +917,11 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
                 c->home_start_ms = c->now_ms;
             }
         } else {
-            float rise = (float)(raw - c->move_ref_raw) * 100.0f / (float)scale_of(c->hreg);
-            if (!c->move_ref_valid || rise < 0.0f || c->move_skip) {
+            float rise_g = (float)(raw - c->move_ref_raw) * 100.0f / (float)scale_of(c->hreg);
+            if (!c->move_ref_valid || rise_g < 0.0f || c->move_skip) {
                 c->move_ref_raw = raw;
                 c->move_ref_valid = 1;
-            } else if (rise > thr) {
+            } else if (rise_g > thr) {
                 direction_fault(c);
             }
         }
