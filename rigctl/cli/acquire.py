@@ -7,7 +7,6 @@ import dataclasses
 import datetime as _dt
 import logging
 import re
-import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -15,6 +14,7 @@ from typing import Any
 
 import click
 
+from rigctl.cli.interrupts import stop_on_sigterm
 from rigctl.cli.outputs import HDF5_SUFFIXES, UsageProblem, check_output
 from rigctl.cli.progress import bars, progress_option, show_bars
 from rigctl.cli.protocols import PROTOCOL
@@ -105,10 +105,6 @@ def _load_protocol(protocol: Any, seed: int | None, trials_per_condition: int | 
             raise UsageProblem(f"--trials-per-condition: {protocol} is a Python plan; set its size in the script")
         proto = dataclasses.replace(proto, trials_per_condition=trials_per_condition)
     return proto
-
-
-def _sigterm_as_interrupt(signum, frame):
-    raise KeyboardInterrupt
 
 
 def plate_prompt(policy: str, *, hardware: bool, stdin_is_tty: bool,
@@ -506,7 +502,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     rig_seed = (0 if seed is None else seed) + (_recorded_before(out, proto) if resume else 0)
 
     # SIGTERM (e.g. a service manager) stops like Ctrl-C: clean stop, rig left safe
-    signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
+    stop_on_sigterm()
     source = _rig_source(dict(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay,
                               bootloaders=hil_bootloaders, inprocess=inprocess, inject=inject, handheld=handheld,
                               motion=motion, allow_firmware_mismatch=allow_firmware_mismatch, rig=rig,

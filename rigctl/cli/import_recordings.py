@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import click
 
+from rigctl.cli.interrupts import stop_on_sigterm
 from rigctl.cli.jsonout import json_text
 from rigctl.cli.outputs import HDF5_SUFFIXES, UsageProblem, check_output
 from rigctl.cli.progress import bars, progress_option, show_bars
@@ -115,6 +116,7 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
     from rigctl.storage.time_column import TimeColumnError
 
     check_output(out, overwrite=overwrite, inputs=(*files, mapping), kind="session", suffixes=HDF5_SUFFIXES)
+    stop_on_sigterm()  # a SIGTERM mid-import removes the partial session and its lock, as a Ctrl-C does
     if preset is not None and len(files) != 1:
         raise click.UsageError(f"--preset {preset} takes one FILES argument: the FabricSlide folder")
     options = {} if preset else dict(

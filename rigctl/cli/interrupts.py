@@ -31,7 +31,7 @@ from collections.abc import Callable
 from types import FrameType
 from typing import Literal
 
-__all__ = ["keep_ctrl_c", "is_interrupt", "REDELIVER_S"]
+__all__ = ["keep_ctrl_c", "is_interrupt", "stop_on_sigterm", "REDELIVER_S"]
 
 #: a profile function's events (``sys.setprofile``)
 ProfileEvent = Literal["call", "return", "c_call", "c_return", "c_exception"]
@@ -76,6 +76,17 @@ def _redeliver_later() -> None:
     timer = threading.Timer(REDELIVER_S, _thread.interrupt_main)
     timer.daemon = True
     timer.start()
+
+
+def _sigterm_as_interrupt(signum: int, frame: FrameType | None) -> None:
+    raise KeyboardInterrupt
+
+
+def stop_on_sigterm() -> None:
+    """SIGTERM (a service manager, ``kill``) ends the command as a Ctrl-C does: its ``finally`` blocks run (a rig left
+    safe, a partial output and its lock removed) instead of the process dying where it stands. Main thread only."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
 
 
 def keep_ctrl_c() -> None:

@@ -381,11 +381,11 @@ def write_session(out: str | os.PathLike[str], plan: Sequence[Mapping[str, Any]]
     the disk refuses (one line; an import has no ``--resume``: it says to run the import again)."""
     from rigctl.storage.session import SessionWriteError, SessionWriter
 
-    writer = SessionWriter.create(out, plan=plan, layout=layout, textures=textures, protocol_name=protocol_name,
-                                  protocol_format="none", rig_config=dict(rig_config or {}), kind=kind,
-                                  overwrite=overwrite, attrs=dict(attrs or {}))
-    done = False
+    done, writer = False, None
     try:
+        writer = SessionWriter.create(out, plan=plan, layout=layout, textures=textures, protocol_name=protocol_name,
+                                      protocol_format="none", rig_config=dict(rig_config or {}), kind=kind,
+                                      overwrite=overwrite, attrs=dict(attrs or {}))
         writer.write_trials(items)
         done = True
     except SessionWriteError as exc:  # the writer's hint is acquisition's (--resume), which an import has not
@@ -393,7 +393,9 @@ def write_session(out: str | os.PathLike[str], plan: Sequence[Mapping[str, Any]]
         raise SessionWriteError(f"{text}; the partial output was removed (an import is written whole or not at "
                                 "all): free space and run the import again", exc.errno, []) from None
     finally:
-        if done:
+        if writer is None:
+            pass
+        elif done:
             writer.close()
         else:  # a full disk, Ctrl-C, a file refused mid-way: the file this import made is removed (only it: an
             writer.discard()  # --overwrite's old session stays, rigctl.storage.sidecars)

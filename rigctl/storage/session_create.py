@@ -99,8 +99,11 @@ def _write_new_file(path: Path, image: bytes, *, keep_aside: bool = False) -> si
         os.fchmod(side.fd, 0o644)
         if not keep_aside:
             side.commit_to(path.name)
-    except OSError as exc:
-        side.discard()
+    except BaseException as exc:
+        side.remove(committed_too=True)  # (a Ctrl-C or SIGTERM too: nothing left of a file being created)
+        side.close()
+        if not isinstance(exc, OSError):
+            raise
         free = ""
         with contextlib.suppress(OSError):
             st = os.statvfs(path.parent)

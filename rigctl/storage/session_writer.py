@@ -331,12 +331,13 @@ class SessionWriter:
         it replaces that session at its first commit (:meth:`_commit`)."""
         try:
             writer = cls(side.path, _lock=lock, **kw)
-        except BaseException:
-            side.discard()
+            writer._created_file = side
+            writer._replaces = path if side.path != path else None
+            return writer
+        except BaseException:  # (a Ctrl-C or SIGTERM too) the file made here is removed
+            side.remove(committed_too=True)
+            side.close()
             raise
-        writer._created_file = side
-        writer._replaces = path if side.path != path else None
-        return writer
 
     @classmethod
     def open(cls, path: str | os.PathLike[str], *, protocol_source: str | None = None,
