@@ -69,6 +69,10 @@ def test_held_rows_in_a_csv_are_counted_and_named(tmp_path):
     assert rc == 0 and "held__A.csv: 200 of 1000 samples repeat the one before on all 6 channels" in out, out
     info = CliRunner().invoke(main, ["info", str(tmp_path / "h.h5")])
     assert "200 repeated samples (identical on every taxel to the one before) in 1 trials" in info.output, info.output
+    enc = CliRunner().invoke(main, ["encode", str(tmp_path / "h.h5"), "--out", str(tmp_path / "h.enc.h5"), "--quiet",
+                                    "--variant", "original"])
+    assert enc.exit_code == 0, enc.output
+    assert "warning: 200 samples in 1 trials repeat the one before on every taxel" in enc.output, enc.output
 
 
 def test_sigterm_during_an_import_leaves_no_session_and_no_lock(tmp_path):
