@@ -28,6 +28,25 @@ Human variability (:class:`OperatorConfig`, each figure a guess at a careful ope
 - path: the finger wanders sideways (1.5 mm, 0.5 s), seen by the tracker and rolling the contact a little
   (taxel levels +-2 % per 1.5 mm).
 
+A session (each :class:`SimulatedOperator` is one: its seed draws these once, from a generator of their own, so the
+scans' other draws are unchanged; ``session_errors()`` gives them; set the four sizes to 0 for an exact one):
+
+- ``touch_error_mm`` (1.5 mm sd per end): the plate's axis is calibrated by touching the fingertip to the plate's
+  two ends (:meth:`SimulatedOperator.touch_ends`), placed by eye on a 36 mm wide plate's edge; a guess at a careful
+  hand, stated. The two errors move the axis's origin by the start's error and scale it by the difference.
+- ``strap_offset_mm`` (2 mm sd along the plate and sideways) and ``strap_rotation_deg`` (0.5 degree sd about the
+  vertical): the tracker is strapped to the wrist again for each session and the calibration (the rig config's
+  plate axis) is not redone, so the tracked point sits a little elsewhere on the hand. The tracker itself is
+  sub-millimetre (Niehorster, Li and Lappe 2017); a strap on a wrist moves by millimetres (a guess, stated).
+- ``session_speed_error`` (2 % sd): the session's tracked velocity is the fingertip's times 1 + b (about the used
+  part's start: the wrist's lever, 100-150 mm, at a slightly different posture each session; 1.2 degrees of
+  posture is 2 %), on top of ``tracker_speed_error``'s per-scan error.
+- hesitations: the pauses and back-slips above (20 % and 10 % of the scans).
+
+Together a session's plate-axis offset (``session_offset_mm``: where the rig reads the finger at the used part's
+start minus where it is) has an sd of about 3 mm (2.7 mm from the touch and the strap, plus 1 mm from the speed bias
+at the used part's end).
+
 The tracker on the wrist (``tracker_speed_error``, 0 by default: the tracker follows the fingertip's path): the
 paper's Vive tracker rides on the wrist, 100-150 mm behind the fingertip, so a wrist that bends or rolls during a
 scan moves the tracker more or less than the fingertip: 3.8 degrees of wrist rotation over a 200 mm scan at a 150 mm
@@ -97,6 +116,11 @@ class OperatorConfig:
     tracker_speed_error: float = 0.0  # the wrist's velocity error: per-scan bias sd (relative), drift half that
     tracker_speed_drift_tau_s: float = 1.0
     frame_delay_s: float = 0.0005  # mean host receive delay of a taxel frame (exponential)
+    # a session's errors (module docstring, "A session"): drawn once per operator (seed) from a generator of their own
+    touch_error_mm: float = 1.5  # sd of each calibration touch along the plate (a fingertip put on an end by eye)
+    strap_offset_mm: float = 2.0  # sd of the re-strapped tracker's offset along the plate (and sideways), mm
+    strap_rotation_deg: float = 0.5  # sd of the re-strapped tracker frame's rotation about the vertical
+    session_speed_error: float = 0.02  # sd of the session's tracked-velocity bias (the strap's lever), relative
 
 
 def profile_speeds(planned: PlannedTrial) -> tuple[float, float]:
@@ -128,12 +152,14 @@ class SimulatedOperator:
     seed : the random seed (every scan's variability, the tracker's rate, the plate's pose in the tracker's frame).
     rig_config : the physical model's configuration (the sensor model).
     textures : the plates' texture set (the paper's A-P; the paper used A, B, D, L, N).
+    session_seed : the seed of the session's errors (module docstring, "A session"; None: ``seed``): two blocks of
+        one session (a calibration block and the real-time block) share it.
     """
 
     layout: SensorLayout = PAPER_FINGER
 
     def __init__(self, config: OperatorConfig | None = None, *, seed: int = 0, rig_config: RigConfig | None = None,
-                 textures: TextureSet | None = None) -> None:
+                 textures: TextureSet | None = None, session_seed: int | None = None) -> None:
         self.config = config or OperatorConfig()
         self.seed = int(seed)
         self.rng = np.random.default_rng([self.seed, 3737])
@@ -145,6 +171,13 @@ class SimulatedOperator:
         # the plate in the tracker's frame: rotated about the vertical, offset (a lab's room coordinates, mm)
         self._yaw = float(self.rng.uniform(-math.pi, math.pi))
         self._origin = np.array([self.rng.uniform(-800, 800), self.rng.uniform(-800, 800), 850.0])
+        # the session's errors (module docstring): a generator of their own, so the draws above stay as they were
+        self.session_seed = self.seed if session_seed is None else int(session_seed)
+        srng = np.random.default_rng([self.session_seed, 3738])
+        self.touch_error_mm = (float(srng.normal(0.0, c.touch_error_mm)), float(srng.normal(0.0, c.touch_error_mm)))
+        self.strap_offset_mm = (float(srng.normal(0.0, c.strap_offset_mm)), float(srng.normal(0.0, c.strap_offset_mm)))
+        self.strap_rotation_rad = float(np.deg2rad(srng.normal(0.0, c.strap_rotation_deg)))
+        self.session_speed_bias = float(srng.normal(0.0, c.session_speed_error))
         self.clock_s = 0.0  # the simulated host clock
         self.count = 0  # the taxel board's running frame count
         self.scans = 0
@@ -158,20 +191,48 @@ class SimulatedOperator:
         return np.stack([self._origin[0] + c * x - s * y, self._origin[1] + s * x + c * y,
                          np.full(x.shape, self._origin[2])], axis=1)
 
+    def session_tracked(self, along_mm: np.ndarray, side_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where this session's tracker reads a fingertip at plate coordinates (mm along, sideways) to be, in the
+        calibration's plate coordinates (mm): the session's velocity bias about the used part's start, the
+        re-strapped tracker's offset and its frame's rotation (module docstring, "A session")."""
+        a = np.asarray(along_mm, np.float64)
+        y = np.asarray(side_mm, np.float64)
+        a = USED_START_MM + (a - USED_START_MM) * (1.0 + self.session_speed_bias)
+        c, s = math.cos(self.strap_rotation_rad), math.sin(self.strap_rotation_rad)
+        return (c * a - s * y + self.strap_offset_mm[0], s * a + c * y + self.strap_offset_mm[1])
+
+    @property
+    def session_offset_mm(self) -> float:
+        """The session's plate-axis offset at the used part's start, mm: where the rig's calibrated axis (from
+        :meth:`touch_ends`) reads the fingertip minus where it is (positive: the rig cuts early)."""
+        e0, e1 = self.touch_error_mm
+        a, _ = self.session_tracked(np.array([USED_START_MM]), np.zeros(1))
+        scale = PLATE_LENGTH_MM / (PLATE_LENGTH_MM + e1 - e0)
+        return float((a[0] - e0) * scale - USED_START_MM)
+
     def touch_ends(self, n: int = 30) -> tuple[np.ndarray, np.ndarray]:
         """What the tracker reads while the finger touches the plate's start and then its end: two (n, 3) arrays
-        of tracker-frame points, mm (the axis calibration's input)."""
+        of tracker-frame points, mm (the axis calibration's input; each end off along the plate by the session's
+        touch error, :attr:`touch_error_mm`)."""
         c = self.config
         out = []
-        for along in (0.0, PLATE_LENGTH_MM):
-            pts = self.to_tracker(np.full(n, along), np.zeros(n))
+        for along, err in zip((0.0, PLATE_LENGTH_MM), self.touch_error_mm):
+            pts = self.to_tracker(np.full(n, along + err), np.zeros(n))
             out.append(pts + self.rng.normal(0.0, c.tracker_noise_mm, pts.shape))
         return out[0], out[1]
 
     def describe(self) -> dict[str, Any]:
         """JSON-able: kind, seed, the operator and tracker settings, the tracker's rate."""
         return {"kind": "simulated_operator", "seed": self.seed, "operator": asdict(self.config),
-                "tracker_rate_hz": self.tracker_rate_hz, "sensor_layout": self.layout.to_dict()}
+                "tracker_rate_hz": self.tracker_rate_hz, "session": self.session_errors(),
+                "sensor_layout": self.layout.to_dict()}
+
+    def session_errors(self) -> dict[str, float | int]:
+        """JSON-able: this session's drawn errors (mm, degrees, relative) and the plate-axis offset they make."""
+        return {"session_seed": self.session_seed, "touch_error_start_mm": self.touch_error_mm[0], "touch_error_end_mm": self.touch_error_mm[1],
+                "strap_offset_along_mm": self.strap_offset_mm[0], "strap_offset_side_mm": self.strap_offset_mm[1],
+                "strap_rotation_deg": math.degrees(self.strap_rotation_rad),
+                "session_speed_bias": self.session_speed_bias, "plate_offset_mm": self.session_offset_mm}
 
     def close(self) -> None:
         """Nothing to release (a simulation)."""
@@ -298,8 +359,9 @@ class SimulatedOperator:
             err = c.tracker_speed_error * wrng.standard_normal() + _ou(
                 wrng, pos.size - 1, dt, c.tracker_speed_drift_tau_s, c.tracker_speed_error / 2)
             pos = np.concatenate([pos[:1], pos[0] + np.cumsum(np.diff(pos) * (1.0 + err))])
-        along = np.interp(t, grid, pos) + rng.normal(0.0, c.tracker_noise_mm, t.size)
-        sideways = np.interp(t, grid, side) + rng.normal(0.0, c.tracker_noise_mm, t.size)
+        along, sideways = self.session_tracked(np.interp(t, grid, pos), np.interp(t, grid, side))
+        along = along + rng.normal(0.0, c.tracker_noise_mm, t.size)
+        sideways = sideways + rng.normal(0.0, c.tracker_noise_mm, t.size)
         xyz = self.to_tracker(along, sideways)
         xyz[:, 2] += rng.normal(0.0, c.tracker_noise_mm, t.size)
         return t0 + t, xyz

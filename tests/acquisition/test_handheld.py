@@ -16,7 +16,7 @@ from rigctl.core.handheld import USED_END_MM, USED_START_MM, PlateAxis, RawScan,
 from rigctl.core.sensor import PAPER_FINGER
 from rigctl.core.trial import PlannedTrial
 from rigctl.rigs import open_rig
-from rigctl.simulation.operator import SimulatedOperator
+from rigctl.simulation.operator import OperatorConfig, SimulatedOperator
 from rigctl.storage.session import open_session
 
 from ..conftest import small_handheld_protocol
@@ -111,11 +111,19 @@ def test_cut_refuses_a_scan_that_never_leaves():
 
 
 def test_plate_axis_from_touches_in_a_rotated_frame():
-    op = SimulatedOperator(seed=3)
-    start, end = op.touch_ends()
-    axis = PlateAxis.from_touches(start, end)
-    pts = op.to_tracker(np.array([0.0, 50.0, 250.0]), np.array([0.0, 3.0, -3.0]))  # sideways wobble ignored
+    exact = SimulatedOperator(OperatorConfig(touch_error_mm=0.0), seed=3)
+    axis = PlateAxis.from_touches(*exact.touch_ends())
+    pts = exact.to_tracker(np.array([0.0, 50.0, 250.0]), np.array([0.0, 3.0, -3.0]))  # sideways wobble ignored
     assert np.allclose(axis.along_mm(pts), [0.0, 50.0, 250.0], atol=0.5)
+    # a session's touches off by e0 at the start and e1 at the end (1.5 mm sd each, by default): the axis reads
+    # (x - e0) * 300 / (300 + e1 - e0), which the test states
+    op = SimulatedOperator(seed=3)
+    e0, e1 = op.touch_error_mm
+    assert 0.1 < max(abs(e0), abs(e1)) < 6.0
+    axis = PlateAxis.from_touches(*op.touch_ends())
+    want = (np.array([0.0, 50.0, 250.0]) - e0) * 300.0 / (300.0 + e1 - e0)
+    assert np.allclose(axis.along_mm(pts), want, atol=0.5)
+    assert not np.allclose(axis.along_mm(pts), [0.0, 50.0, 250.0], atol=0.5) or max(abs(e0), abs(e1)) < 0.5
     with pytest.raises(ValueError, match="apart"):
         PlateAxis((0.0, 0.0, 0.0), (0.3, 0.0, 0.0))  # metres, not mm
 
