@@ -87,13 +87,13 @@ def features(path: Path, variant: str) -> tuple[np.ndarray, np.ndarray, np.ndarr
 def scores(tr: Path, cal: Path, rt: Path, variant: str, alignment: str, n_pcs: int) -> dict[str, float]:
     """Accuracy (%) of S5, 4C trained and 4C untrained, and the calibration block's measured shift (mm)."""
     x_tr, y_tr, p_tr = features(tr, variant)
-    x_cal, _, _ = features(cal, variant)
+    x_cal, y_cal, _ = features(cal, variant)
     x_rt, y_rt, p_rt = features(rt, variant)
     s5 = RealtimeClassifier(x_tr, y_tr, n_pcs=n_pcs, alignment=alignment)
-    s5.calibrate(x_cal)
+    s5.calibrate(x_cal, y_cal)
     sel = np.isin(p_tr, TRAINED)
     c4 = RealtimeClassifier(x_tr[sel], y_tr[sel], n_pcs=min(n_pcs, int(sel.sum()) - 1), alignment=alignment)
-    c4.calibrate(x_cal)
+    c4.calibrate(x_cal, y_cal)
     trained = np.isin(p_rt, TRAINED)
     return {"S5": 100 * float(np.mean(s5.predict(x_rt) == y_rt)),
             "4C trained": 100 * float(np.mean(c4.predict(x_rt[trained]) == y_rt[trained])),

@@ -6,13 +6,17 @@ mean-center the real-time feature data before calculating the first 25 PCs").
 Alignment (issue 78 item 2; :mod:`rigctl.encoding.alignment`): a new session's plate axis may read the finger a few
 mm off (calibration touches, a re-strapped tracker), which moves every scan's windows along the plate. ``alignment``:
 
-- ``"none"``: the paper's classifier;
-- ``"session"``: :meth:`RealtimeClassifier.calibrate` also finds the calibration block's shift against the training
-  block's mean (:func:`rigctl.encoding.alignment.session_shift`, no labels) and every scan is shifted back by it
-  before the PCs; the shift is :attr:`RealtimeClassifier.shift_mm`, and :attr:`RealtimeClassifier.alignment_note`
-  names a session outside :data:`rigctl.encoding.alignment.ALIGNMENT_TOLERANCE_MM`;
-- ``"augment"``: trained on each training scan shifted by -0.8 .. +0.8 windows (8 mm);
-- ``"spectrum"``: each train's Fourier magnitudes over its windows (a place-free feature).
+- ``"none"``: the paper's classifier, on the windows themselves;
+- ``"session"``: :meth:`RealtimeClassifier.calibrate` with the calibration block's textures finds its shift against
+  the training block's per-texture means (:func:`rigctl.encoding.alignment.session_shift`) and every scan is
+  shifted back by it before the PCs;
+- ``"statistics"``: each train's mean, spread and mean change over its windows
+  (:func:`rigctl.encoding.alignment.window_statistics`: a place-free feature), 3 x n_trains features.
+
+With every alignment, a calibration block with its textures is measured against the training block
+(:attr:`RealtimeClassifier.shift_mm`) and :attr:`RealtimeClassifier.alignment_note` names a session outside
+:data:`rigctl.encoding.alignment.ALIGNMENT_TOLERANCE_MM`. Compared on a new session (docs/results.md 3b; an
+augmentation with shifted copies and the windows' Fourier magnitudes were tried too and did not survive 2 mm).
 """
 
 from __future__ import annotations
@@ -23,17 +27,16 @@ from rigctl.analysis.classify import NestedLDA, fit_pca
 from rigctl.encoding.alignment import (
     ALIGNMENT_TOLERANCE_MM,
     WINDOW_MM,
-    augment_shifts,
     session_shift,
     shift_windows,
-    window_spectrum,
+    window_statistics,
 )
 from rigctl.encoding.features import N_WINDOWS_REALTIME
 
 __all__ = ["ALIGNMENTS", "RealtimeClassifier"]
 
 #: the classifier's alignments (module docstring)
-ALIGNMENTS = ("none", "session", "augment", "spectrum")
+ALIGNMENTS = ("none", "session", "statistics")
 
 
 class RealtimeClassifier:
@@ -68,14 +71,13 @@ class RealtimeClassifier:
             raise ValueError(f"{x.shape[1]} features are not trains of {n_windows} windows")
         self.alignment = alignment
         self.n_trains = max(1, x.shape[1] // n_windows)
-        self.template = x.mean(axis=0)  # the training block's mean, in its own alignment
+        #: the training block's mean per texture, in its own alignment
+        self.templates = {c: x[y == c].mean(axis=0) for c in np.unique(y)}
         #: the session's shift against the training block (mm of plate; 0 until a calibration block is seen)
         self.shift_mm = 0.0
         #: why the session's scans sit outside the training's alignment ("" when they do not)
         self.alignment_note = ""
         self._shift = 0.0
-        if alignment == "augment":
-            x, y = augment_shifts(x, y, self.n_trains)
         self.pca = fit_pca(self._transform(x), n_pcs)
         self.n_pcs = int(self.pca.n_components_)
         self.centre = np.asarray(self.pca.mean_, np.float64)  # the training mean until calibrated
@@ -84,8 +86,8 @@ class RealtimeClassifier:
 
     def _transform(self, x: np.ndarray) -> np.ndarray:
         """The features the PCs see: shifted by the session's shift, or their window spectra."""
-        if self.alignment == "spectrum":
-            return window_spectrum(x, self.n_trains)
+        if self.alignment == "statistics":
+            return window_statistics(x, self.n_trains)
         if self.alignment == "session" and self._shift:
             return shift_windows(x, self.n_trains, self._shift)
         return np.asarray(x, np.float64)
@@ -94,20 +96,24 @@ class RealtimeClassifier:
         comps = np.asarray(self.pca.components_, np.float64)
         return (np.asarray(x, np.float64) - self.centre) @ comps.T
 
-    def measure_shift(self, features: np.ndarray) -> float:
-        """A block's shift against the training block, mm of plate (any alignment; :func:`rigctl.encoding.
-        alignment.session_shift`). Raises ValueError for features of another shape."""
-        shift, _ = session_shift(self.template, features, self.n_trains)
-        return shift * WINDOW_MM
+    def measure_shift(self, features: np.ndarray, labels: np.ndarray) -> float:
+        """A labelled block's shift against the training block, mm of plate (positive: its scans start earlier on
+        the plate; :func:`rigctl.encoding.alignment.session_shift`). Raises ValueError for features of another
+        shape or no trained texture."""
+        return session_shift(self.templates, features, labels, self.n_trains) * WINDOW_MM
 
-    def calibrate(self, features: np.ndarray) -> None:
-        """Re-centre on a calibration block: its mean feature vector ((m, n_features), m >= 1); measure its shift
-        against the training block (:attr:`shift_mm`, :attr:`alignment_note`) and, with ``alignment="session"``,
-        shift every scan back by it."""
+    def calibrate(self, features: np.ndarray, labels: np.ndarray | None = None) -> None:
+        """Re-centre on a calibration block: its mean feature vector ((m, n_features), m >= 1). With its textures
+        ``labels`` ((m,)): measure its shift against the training block (:attr:`shift_mm`,
+        :attr:`alignment_note`) and, with ``alignment="session"``, shift every scan back by it. Raises ValueError
+        (shapes; ``alignment="session"`` without labels)."""
         x = np.asarray(features, np.float64)
-        if x.ndim != 2 or x.shape[1] != self.template.size or x.shape[0] == 0:
-            raise ValueError(f"calibration features must be (m, {self.template.size}), got {x.shape}")
-        self.shift_mm = self.measure_shift(x) if x.shape[1] % self.n_trains == 0 else 0.0
+        size = next(iter(self.templates.values())).size
+        if x.ndim != 2 or x.shape[1] != size or x.shape[0] == 0:
+            raise ValueError(f"calibration features must be (m, {size}), got {x.shape}")
+        if labels is None and self.alignment == "session":
+            raise ValueError("the session alignment needs the calibration block's textures")
+        self.shift_mm = 0.0 if labels is None else self.measure_shift(x, np.asarray(labels))
         self._shift = self.shift_mm / WINDOW_MM if self.alignment == "session" else 0.0
         self.alignment_note = ""
         if abs(self.shift_mm) > ALIGNMENT_TOLERANCE_MM:

@@ -242,7 +242,7 @@ def _check_onboard(onboard: bool, *, handheld: bool, classify: Path | None, vari
 
 
 def _scan_classifier(classify: Path | None, calibration: Path | None, variant: str, pcs: int, *,
-                     handheld: bool) -> Any:
+                     handheld: bool, alignment: str = "statistics") -> Any:
     """The live classifier of ``--classify`` (None without it); its predictions are echoed as they come. Raises
     click.UsageError for --classify/--calibration without a handheld protocol or --calibration alone, UsageProblem for
     a file that is not an encoded training block."""
@@ -256,7 +256,7 @@ def _scan_classifier(classify: Path | None, calibration: Path | None, variant: s
     from rigctl.operations import ScanClassifier
 
     try:
-        return ScanClassifier(classify, calibration=calibration, variant=variant, n_pcs=pcs,
+        return ScanClassifier(classify, calibration=calibration, variant=variant, n_pcs=pcs, alignment=alignment,
                               on_prediction=lambda p: click.echo(p.line()))
     except (ValueError, OSError) as exc:  # a file that is not encoded: NotEncodedError, a ValueError
         raise UsageProblem(f"--classify: {' '.join(str(exc).split())}") from None
@@ -281,7 +281,9 @@ def _prediction_lines(classifier: Any, out: Path, replay: Any) -> list[str]:
         return []
     right = sum(p.correct for p in classifier.predictions)
     lines = [f"  predicted: {right}/{len(classifier.predictions)} scans correct ({100 * classifier.accuracy():.1f} "
-             f"%, {classifier.variant}, {classifier.model.n_pcs} PCs)"]
+             f"%, {classifier.variant}, {classifier.model.n_pcs} PCs, features: {classifier.model.alignment})"]
+    if classifier.model.alignment_note:  # the session's scans sit outside the training's alignment
+        lines.append(f"  WARNING: {classifier.model.alignment_note}")
     try:
         classifier.log_to(out)
         if isinstance(replay, Path):
@@ -398,6 +400,12 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
               default="realtime_speed_scaled", show_default=True,
               help="With --classify: the features classified (Speed Scaled: the paper's system; Original: without the "
                    "speed invariance module).")
+@click.option("--classify-alignment", "classify_alignment", type=click.Choice(["statistics", "none", "session"]),
+              default="statistics", show_default=True,
+              help="With --classify: statistics: each taxel's mean, spread and change over the scan's windows (does "
+                   "not depend on where on the plate the scan was cut: a calibration touch a few mm off, a re-strapped "
+                   "tracker; docs/results.md 3b); none: the paper's classifier on the windows themselves; session: "
+                   "the windows shifted by the calibration block's measured shift.")
 @click.option("--onboard-encoder", "onboard_encoder", is_flag=True, default=False,
               help="Handheld rig with --classify: the finger's taxel board runs the encoder image (uno_encoder) and "
                    "encodes each scan itself, calibrated with the --classify block's range: ENCODE at the scan's "
@@ -443,7 +451,7 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
 @progress_option
 def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, rig, rig_options, replay,
             handheld, motion, motion_units, classify,
-            calibration, classify_variant, onboard_encoder, pcs, resume, ack, overwrite, seed, trials_per_condition,
+            calibration, classify_variant, classify_alignment, onboard_encoder, pcs, resume, ack, overwrite, seed, trials_per_condition,
             on_failure, config_path,
             plates, lsl, lsl_wait_s,
             inject, hx711_rate, allow_firmware_mismatch, truth_log, progress):
@@ -491,7 +499,8 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     handheld = _handheld_rig(proto, handheld=handheld, motion=motion, hil=hil, inprocess=inprocess, hardware=hardware,
                              replay=replay, onboard=dict(onboard=onboard_encoder, classify=classify,
                                                          variant=classify_variant, taxel_port=taxel_port))
-    classifier = _scan_classifier(classify, calibration, classify_variant, pcs, handheld=handheld)
+    classifier = _scan_classifier(classify, calibration, classify_variant, pcs, handheld=handheld,
+                                  alignment=classify_alignment)
     if hardware and plates == "skip":
         with contextlib.suppress(Exception):  # a note only; the runner reports a plan it cannot build
             labels = sorted({str(t.texture) for t in proto.plan()})

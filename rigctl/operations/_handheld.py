@@ -64,6 +64,9 @@ class ScanClassifier:
     calibration : the encoded calibration block, or None (centre: the training block's mean).
     variant : the features classified: ``realtime_speed_scaled`` (the paper's system) or ``realtime_original``.
     n_pcs : principal components (the paper: 25).
+    alignment : :data:`rigctl.analysis.realtime_model.ALIGNMENTS`: ``"statistics"`` (default: each train's mean,
+        spread and change over its windows, a feature that does not depend on where on the plate the scan was cut;
+        issue 78 item 2, docs/results.md 3b), ``"none"`` (the paper's: the windows themselves) or ``"session"``.
     on_prediction : receives each :class:`Prediction`.
     lsl : an :class:`rigctl.operations.LslPublisher` (its marker outlet), or None.
     control : the rig's owner (:class:`rigctl.operations.RigControl`): each prediction also goes on its event
@@ -76,7 +79,7 @@ class ScanClassifier:
     """
 
     def __init__(self, training: str | os.PathLike[str], *, calibration: str | os.PathLike[str] | None = None,
-                 variant: str = "realtime_speed_scaled", n_pcs: int = 25,
+                 variant: str = "realtime_speed_scaled", n_pcs: int = 25, alignment: str = "statistics",
                  on_prediction: Callable[[Prediction], Any] | None = None, lsl: Any = None,
                  control: RigControl | None = None) -> None:
         # the encoder (numba) and the classifier (scikit-learn) load when a classifier is made, not with the layer
@@ -92,14 +95,14 @@ class ScanClassifier:
             norm = f.normalisation
             self.params = EncodeParams.from_dict(f.parameters)
         self.variant = variant
-        self.model = RealtimeClassifier(x, labels, n_pcs=n_pcs)
+        self.model = RealtimeClassifier(x, labels, n_pcs=n_pcs, alignment=alignment)
         #: why the calibration block's features are not on the live scans' scale ("" when they are)
         self.calibration_note = ""
         if calibration is not None:
             with open_encoded(calibration) as c:
                 if variant not in c.variants:
                     raise ValueError(f"{calibration} holds no {variant} features")
-                self.model.calibrate(c.features(variant))
+                self.model.calibrate(c.features(variant), np.asarray(c.trials["texture"]).astype(str))
                 cn = c.normalisation
             same = all(np.shape(cn[k]) == np.shape(norm[k]) and np.array_equal(cn[k], norm[k])
                        for k in ("taxel_min", "taxel_max"))
@@ -107,6 +110,8 @@ class ScanClassifier:
                 self.calibration_note = (f"{calibration} was normalised with its own range, the live scans with "
                                          f"{training}'s: encode it with rigctl encode --range-from {training}")
                 log.warning("%s", self.calibration_note)
+            if self.model.alignment_note:  # the session's scans sit outside the training's alignment
+                log.warning("%s", self.model.alignment_note)
         self.encoder = ScanEncoder(TaxelRange(norm["taxel_min"], norm["taxel_max"]), self.params)
         self.on_prediction, self.lsl, self.control = on_prediction, lsl, control
         self.predictions: list[Prediction] = []
@@ -176,7 +181,10 @@ class ScanClassifier:
         try:  # one commit for all of them (each commit's journal is applied by a helper process)
             w.log_events([("prediction", {"trial_id": p.trial_id, "truth": p.truth, "profile": p.profile,
                                           "predicted": p.predicted, "correct": p.correct, "variant": self.variant,
-                                          "n_pcs": self.model.n_pcs}) for p in self.predictions])
+                                          "n_pcs": self.model.n_pcs, "alignment": self.model.alignment,
+                                          "session_shift_mm": self.model.shift_mm,
+                                          "outside_alignment": bool(self.model.alignment_note)})
+                          for p in self.predictions])
         finally:
             w.close()
         return len(self.predictions)

@@ -229,7 +229,8 @@ class SimulatedOperator:
 
     def session_errors(self) -> dict[str, float | int]:
         """JSON-able: this session's drawn errors (mm, degrees, relative) and the plate-axis offset they make."""
-        return {"session_seed": self.session_seed, "touch_error_start_mm": self.touch_error_mm[0], "touch_error_end_mm": self.touch_error_mm[1],
+        return {"session_seed": self.session_seed, "touch_error_start_mm": self.touch_error_mm[0],
+                "touch_error_end_mm": self.touch_error_mm[1],
                 "strap_offset_along_mm": self.strap_offset_mm[0], "strap_offset_side_mm": self.strap_offset_mm[1],
                 "strap_rotation_deg": math.degrees(self.strap_rotation_rad),
                 "session_speed_bias": self.session_speed_bias, "plate_offset_mm": self.session_offset_mm}
