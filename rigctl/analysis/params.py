@@ -94,6 +94,8 @@ class RealtimeParams:
     train_fraction : fraction of the (trained-profile) trials drawn for training
     calibration_per_texture : trials per texture of a new session used for its mean-centering calibration
     headline_pcs : PC count of the confusion matrices (the paper's real-time classifier: 25)
+    features : ``"windows"`` (the paper's: each train's windows) or ``"statistics"`` (each train's mean, spread and
+        change over its windows: :func:`rigctl.encoding.alignment.window_statistics`, the live classifier's default)
     """
 
     train_profiles: Sequence[str] = ("slow", "medium")
@@ -101,6 +103,7 @@ class RealtimeParams:
     train_fraction: float = 0.75
     calibration_per_texture: int = 10
     headline_pcs: int = 25
+    features: str = "windows"
 
 
 T = TypeVar("T")

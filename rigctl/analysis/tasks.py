@@ -612,6 +612,16 @@ def run_realtime(
     params, reps = resolve(overrides, params or RealtimeParams(), reps or Repetitions(repeats=100))
     train_profiles, k, train_fraction = params.train_profiles, params.k, params.train_fraction
     calibration_per_texture, headline_pcs = params.calibration_per_texture, params.headline_pcs
+    if params.features not in ("windows", "statistics"):
+        raise ValueError(f"unknown real-time features {params.features!r}: windows or statistics")
+
+    def view(x):  # the features the PCs see (params.features; one home: rigctl.encoding.alignment)
+        if params.features == "windows":
+            return x
+        from rigctl.encoding.alignment import window_statistics
+        from rigctl.encoding.features import N_WINDOWS_REALTIME
+
+        return window_statistics(x, max(1, x.shape[1] // N_WINDOWS_REALTIME)).astype(np.float32)
     variants, n_pcs, repeats, seed = reps.variants, reps.n_pcs, reps.repeats, reps.seed
     if fs.profile is None:
         raise ValueError("the real-time analysis needs ramp-profile trials: /trials has no 'profile' column")
@@ -647,7 +657,7 @@ def run_realtime(
             cal = _calibration_draw(new_session, calibration_per_texture, rng)
             rest = np.setdiff1d(np.arange(new_session.n_trials), cal)
         for v in vs:
-            x = fs.features[v]
+            x = view(fs.features[v])
             preds, truths = [], []
             for f, (tr, te) in enumerate(folds):
                 pca = fit_pca(x[tr], n_pcs, random_state=r * k + f)
@@ -665,7 +675,7 @@ def run_realtime(
             if new_session is not None and v in new_session.features:
                 pca = fit_pca(x[all_tr], n_pcs, random_state=r)
                 lda = NestedLDA().fit(pca.transform(x[all_tr]), fs.texture[all_tr])
-                xn = new_session.features[v]
+                xn = view(new_session.features[v])
                 centre = xn[cal].astype(np.float64).mean(axis=0)  # mean-centering calibration
                 add("rt_new_session", v, lda.predict_all(_project(pca, xn[rest], centre), n_pcs),
                     new_session.texture[rest])

@@ -237,6 +237,11 @@ def _format_leak(leak) -> str:
 @click.option("--new-session", type=click.Path(exists=True, dir_okay=False), default=None,
               help="realtime: an encoded second session, classified after mean-centering calibration.")
 @click.option("--train-profiles", default="slow,medium", show_default=True, help="realtime: trained profiles.")
+@click.option("--realtime-features", "realtime_features", type=click.Choice(["windows", "statistics"]),
+              default="windows", show_default=True,
+              help="realtime: windows: the paper's features (each taxel's 20 windows); statistics: each taxel's mean, "
+                   "spread and change over its windows (place-free: what the live classifier uses by default, "
+                   "rigctl acquire --classify-alignment; docs/results.md 3b).")
 @click.option("--save-model", type=click.Path(dir_okay=False, writable=True), default=None,
               help="Also fit the raw-trials-to-label pipeline (--model-variant, --model-pcs) on every trial of the "
                    "session and save it (.skops; the GUI's real-time view loads it).")
@@ -265,7 +270,7 @@ def _format_leak(leak) -> str:
 @click.pass_context
 def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json,
             plot, confusion, csv_path, overwrite, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
-            train_profiles, save_model, model_variant, model_pcs, encode_, threads, jobs, scheduler, workers, progress,
+            train_profiles, realtime_features, save_model, model_variant, model_pcs, encode_, threads, jobs, scheduler, workers, progress,
             keep_nonfinite, variance, force_leak_, cv_groups, textures_, n_train, n_test):
     """Run the paper's PCA + LDA analyses on FILE, an encoded file (``rigctl encode`` output).
 
@@ -288,6 +293,7 @@ def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_,
         plot=plot, confusion=confusion, csv_path=csv_path, train_speeds=_floats(train_speeds),
         test_speeds=_floats(test_speeds), train_forces=_floats(train_forces), baseline=baseline, channels=channels,
         new_session=new_session, train_profiles=tuple(p.strip() for p in train_profiles.split(",")),
+        realtime_features=realtime_features,
         save_model=save_model, model_variant=model_variant, model_pcs=model_pcs, encode=encode_, progress=show_bars(progress),
         keep_nonfinite=keep_nonfinite,
         variance=variance or task == "variance", force_leak=force_leak_, cv_groups=cv_groups, n_train=n_train,
@@ -329,6 +335,7 @@ class AnalyzeOptions:
     channels: int | None = None
     new_session: str | None = None
     train_profiles: tuple[str, ...] = ("slow", "medium")
+    realtime_features: str = "windows"
     save_model: str | None = None
     model_variant: str = "speed_scaled"
     model_pcs: int = 25
@@ -362,7 +369,8 @@ def _plan(opts: AnalyzeOptions, fs):
     return AnalysisPlan.for_task(
         opts.task, reps=Repetitions(n_pcs=opts.n_pcs, repeats=opts.repeats, seed=opts.seed, variants=opts.variants),
         cv=CVParams(per_texture=opts.per_texture, groups=opts.cv_groups), extrapolation=extrapolation,
-        realtime=RealtimeParams(train_profiles=opts.train_profiles), baseline=opts.baseline, channels=opts.channels,
+        realtime=RealtimeParams(train_profiles=opts.train_profiles, features=opts.realtime_features),
+        baseline=opts.baseline, channels=opts.channels,
         new_session=other, on_error="skip" if opts.task == "all" else "raise")
 
 

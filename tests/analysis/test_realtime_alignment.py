@@ -77,3 +77,28 @@ def test_a_session_carries_its_errors_by_default_and_none_when_exact():
                                              session_speed_error=0), seed=7)
     assert exact.session_offset_mm == pytest.approx(0.0, abs=1e-9)
     assert exact.tracker_rate_hz == a.tracker_rate_hz  # the session's draws leave the others as they were
+
+
+def test_analyze_realtime_classifies_the_window_statistics_of_a_shifted_session():
+    """The offline path (rigctl analyze --task realtime --realtime-features statistics): the same transform as the
+    live classifier's, on the new session too; the paper's windows stay the default."""
+    from rigctl.analysis.data import FeatureSet
+    from rigctl.analysis.tasks import run_realtime
+
+    rng = np.random.default_rng(2)
+
+    def fs_of(shift_mm):
+        x, y = _block(rng, shift_mm, n_per=16)
+        n = y.size
+        prof = np.array(["slow", "medium", "fast", "slow-to-fast"] * (n // 4))
+        return FeatureSet(features={"realtime_speed_scaled": x.astype(np.float32)}, texture=y,
+                          speed_mm_s=np.full(n, 80.0), force_g=np.full(n, 500.0), profile=prof)
+
+    fs, other = fs_of(0), fs_of(8)
+    got = {}
+    for feats in ("windows", "statistics"):
+        res = run_realtime(fs, new_session=other, n_pcs=10, repeats=2, seed=1, features=feats)
+        got[feats] = res.curves["rt_new_session"]["realtime_speed_scaled"].at(10)[0]
+    assert got["statistics"] >= 0.9 and got["statistics"] > got["windows"]
+    with pytest.raises(ValueError, match="real-time features"):
+        run_realtime(fs, n_pcs=5, repeats=1, features="bogus")
