@@ -526,3 +526,16 @@ def test_a_group_without_its_command_shows_its_help():
     assert r.output.startswith("Usage: rigctl export") and "Commands:" in r.output and "Error" not in r.output
     assert {"events", "nwb", "trials"} <= {line.split()[0] for line in r.output.split("Commands:")[1].splitlines()
                                            if line.strip()}
+
+
+def test_the_shell_completes_protocol_names_and_files():
+    """Issue 79 item 7: ``rigctl acquire <TAB>`` completed nothing; it now offers the built-in protocols' names (with
+    their summaries, for zsh and fish) and the shell's own file completion, for acquire and sim dataset alike."""
+    from click.shell_completion import ShellComplete
+
+    for words in (["acquire"], ["sim", "dataset"]):
+        items = ShellComplete(main, {}, "rigctl", "_RIGCTL_COMPLETE").get_completions(words, "qu")
+        assert [(i.type, i.value) for i in items] == [("plain", "quick_check"), ("file", "qu")], items
+        assert items[0].help  # its summary line, which zsh and fish show beside the name
+    everything = ShellComplete(main, {}, "rigctl", "_RIGCTL_COMPLETE").get_completions(["acquire"], "")
+    assert {"quick_check", "paper_dataset", "realtime_profiles"} <= {i.value for i in everything if i.type == "plain"}

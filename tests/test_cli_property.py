@@ -186,6 +186,32 @@ def test_info_export_and_protocols(inputs, tmp_path, data):
     assert r.exit_code == 0 and "inprocess" in r.output, r.output
 
 
+@pytest.fixture(scope="module")
+def model(inputs):
+    """A model file of the 8-trial session (``analyze --save-model``'s pipeline, 2 PCs): ``export nir``'s input."""
+    from rigctl.analysis.model import texture_pipeline, trials_of_session
+    from rigctl.storage.model_file import save_model
+
+    trials, texture = trials_of_session(inputs["session"])
+    path = inputs["session"].with_name("m.skops")
+    save_model(texture_pipeline("original", 2).fit(trials, texture), path)
+    return path
+
+
+@given(data=st.data())
+@PROPERTY
+def test_export_nir_and_safety_table(inputs, model, tmp_path, data):
+    pcs = data.draw(_maybe(SMALL), label="export nir --pcs")
+    source = data.draw(st.sampled_from([model, inputs["session"], inputs["csv"]]), label="export nir MODEL")
+    out = data.draw(st.sampled_from(["m.nir", "m.txt", "sub/m.nir", ""]), label="export nir --out")
+    _check({**inputs, "model": model}, tmp_path,
+           ["export", "nir", str(source), "--out", str(tmp_path / out) if out else "",
+            *(["--pcs", pcs] if pcs is not None else []),
+            *(["--overwrite"] if data.draw(st.booleans(), label="--overwrite") else [])])
+    r = _check(inputs, tmp_path, ["safety", "table"])
+    assert r.exit_code == 0 and r.output.startswith("|"), r.output
+
+
 @pytest.fixture
 def inprocess_rig(monkeypatch, tmp_path_factory):
     """The simulated rig a command opens is the in-process one; the rig config lives in a folder of its own."""
@@ -377,7 +403,8 @@ def test_sim_inject(inputs, tmp_path, sim_in_folder, data):
 DRIVEN = {("encode",), ("sim", "dataset"), ("analyze",), ("import",), ("export", "nwb"), ("export", "events"),
           ("export", "trials"), ("info",), ("protocols",),
           ("acquire",), ("doctor",), ("gui",), ("firmware",), ("ports",), ("udev-rules",), ("import-fabricslide",),
-          ("sim",), ("serve",), ("sim", "operator"), ("rigs",), ("sim", "inject")}
+          ("sim",), ("serve",), ("sim", "operator"), ("rigs",), ("sim", "inject"), ("export", "nir"),
+          ("safety", "table")}
 
 
 def test_every_command_is_driven(cli_commands):

@@ -22,6 +22,17 @@ class ProtocolArg(click.ParamType):
         except FileNotFoundError as exc:
             self.fail(str(exc), param, ctx)
 
+    def shell_complete(self, ctx: click.Context, param: click.Parameter,
+                       incomplete: str) -> list[click.shell_completion.CompletionItem]:
+        """The built-in protocols' names that start with ``incomplete``, and the shell's own file completion (a
+        protocol file of the user's)."""
+        from click.shell_completion import CompletionItem
+
+        from rigctl.acquisition.builtin import builtin_protocols, summary
+
+        names = [CompletionItem(n, help=summary(p)) for n, p in builtin_protocols().items() if n.startswith(incomplete)]
+        return [*names, CompletionItem(incomplete, type="file")]
+
 
 PROTOCOL = ProtocolArg()
 
