@@ -178,6 +178,7 @@ static void test_modbus()
 struct Plant {
     double x_mm = 0, k = 250, gap = 3, counts_per_g = 420, offset = 83000, extra_g = 0;
     bool switch_broken = false; // the home switch never closes (a broken wire)
+    bool switch_stuck = false;  // the home switch reads closed wherever the actuator is (a shorted wire)
     bool reversed = false;      // the motor's coil pair swapped: it turns the other way
     double peak_g = 0;          // the largest force so far
     double cmd_mm = 0;          // the firmware's step count, mm (the real position when not reversed)
@@ -219,7 +220,7 @@ static void run_ms(ctl_t &c, Plant &p, uint32_t &now, int ms, bool feed = true, 
         if (feed && now % 100 == 0) ctl_feed_watchdog(&c);
         if (!p.reversed) p.cmd_mm = p.x_mm;
         c.act_pos_steps = (int32_t)std::lround(p.cmd_mm * c.hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM]);
-        c.home_switch = p.x_mm <= 0.0 && !p.switch_broken;
+        c.home_switch = p.switch_stuck || (p.x_mm <= 0.0 && !p.switch_broken);
         ctl_tick(&c, now);
         if (c.zero_position) {
             if (!p.reversed) p.x_mm = 0;
@@ -533,6 +534,23 @@ static void test_safety()
         run_ms(c, p, now, 1000);
         std::printf("safety: reversed back-off: peak %.0f g\n", p.peak_g);
         CHECK(c.faults == RIGCTL_FAULT_ACTUATOR_DIRECTION && !c.homed && c.act_vel_mm_s == 0.0f && p.peak_g < 750);
+    }
+    {   // issue 75: a home switch stuck closed and a reset under 1000 g: no power-up tare on the switch alone where
+        // the zero stored with the calibration disagrees (the force would read 0 under 1000 g); one where it agrees
+        for (int stuck = 0; stuck < 2; stuck++) {
+            ctl_t c;
+            Plant p;
+            ctl_init(&c, 0, 0);
+            c.zero_raw = (int32_t)p.offset; // the calibration's stored zero: the unloaded cell
+            c.zero_valid = 1;
+            now = 0;
+            if (stuck) p.x_mm = p.gap + 4.0; // 1000 g on the cell
+            p.switch_stuck = stuck;
+            run_ms(c, p, now, 50);
+            std::printf("safety: power-up at %.0f g, switch %s: tared %d\n", p.force(), stuck ? "stuck closed" : "ok",
+                        c.tared);
+            CHECK(stuck ? !c.tared : (c.tared && std::abs(c.force_gf) < 5.0f));
+        }
     }
     {   // issue 75 row 1: the motor's coil pair swapped while the loop holds 1400 g (its proof from before the swap),
         // then the release's back-off (a latch's is the same): it proves its way with a short step first and stops

@@ -140,6 +140,8 @@ static uint8_t home_overloaded(const ctl_t *c)
 #define BACKOFF_PROOF_TRIES 4u
 #define BACKOFF_LOAD_G 30.0f
 enum { BACKOFF_FREE = 0, BACKOFF_REST, BACKOFF_STEP, BACKOFF_SETTLE };
+/* the power-up tare's agreement with the stored zero (ctl_loadcell), g */
+#define TARE_ZERO_AGREE_G 50.0f
 
 static void backoff_step(ctl_t *c)
 {
@@ -926,7 +928,13 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
             }
         }
     }
-    if (c->tare_pending && c->home_switch) { /* never under load: only at home */
+    /* never under load: only at home. After a reset the switch alone is no proof of home (a switch stuck closed reads
+     * closed anywhere, under load too: issue 75): the power-up tare is taken only where the zero stored with the
+     * calibration agrees within TARE_ZERO_AGREE_G; HOME's own tare (its switch proven by leaving and returning) and
+     * a homed TARE always */
+    if (c->tare_pending && c->home_switch &&
+        (c->homed || c->state == RIGCTL_STATE_HOMING || !c->zero_valid ||
+         load_g(c, raw, c->zero_raw) <= TARE_ZERO_AGREE_G)) {
         c->tare_offset = raw;
         c->tare_pending = 0;
         c->force_prev_valid = 0;
