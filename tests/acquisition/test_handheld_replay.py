@@ -96,3 +96,29 @@ def test_replay_refuses_a_drum_session_and_a_motion(trained, tmp_path):
 
     with pytest.raises(RigError, match="no handheld scan"):
         open_rig("handheld", motion=f"replay:{tmp_path / 'd.h5'}")
+
+
+def test_the_live_block_names_its_features_and_warns_of_a_shifted_session(trained, monkeypatch):
+    """Issue 78 item 2: the summary names the features (window statistics by default), each prediction event records
+    the session's shift; a calibration block outside the training's alignment ends the block with a WARNING line."""
+    from types import SimpleNamespace
+
+    from rigctl.cli.acquire import _prediction_lines
+    from rigctl.operations import Prediction
+
+    tmp, enc = trained
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp / "rig.json"))
+    out = _acquire(tmp, enc, "rt_cal.h5", "--seed", "6", "--calibration", str(enc))
+    assert "features: statistics)" in out and "WARNING" not in out  # calibrated on the training block itself
+    with open_session(tmp / "rt_cal.h5") as s:
+        ev = [e for e in s.events if e["kind"] == "prediction"]
+    assert len(ev) == 4 and all(e["alignment"] == "statistics" and e["session_shift_mm"] == 0.0
+                                and e["outside_alignment"] is False for e in ev)
+    note = "the calibration block sits +6.0 mm along the plate from the training block (tolerance 2 mm: ...)"
+    fake = SimpleNamespace(predictions=[Prediction(0, "B", "slow", "B")], variant="realtime_speed_scaled",
+                           accuracy=lambda: 1.0, log_to=lambda out: 1,
+                           model=SimpleNamespace(n_pcs=5, alignment="none", alignment_note=note))
+    lines = _prediction_lines(fake, tmp / "x.h5", None)
+    assert lines[-1] == f"  WARNING: {note}" and "features: none" in lines[0]
+    fake.model.alignment_note = ""
+    assert not any("WARNING" in line for line in _prediction_lines(fake, tmp / "x.h5", None))
