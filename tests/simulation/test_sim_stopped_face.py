@@ -28,6 +28,8 @@ while True:  # a face at work: it reads the rig on the rig's clock (each wait gr
 """
 
 
+# wall: the point is the wall clock: a face SIGSTOPped (it gets no CPU and grants no time) must not hold the simulated
+# world, which then runs on the wall's pace until the controller's watchdog stops the rig
 @pytest.mark.realtime
 def test_a_stopped_face_does_not_freeze_the_world_and_the_watchdog_stops_the_rig(tmp_path):
     from rigctl.simulation.rig import SimulatedRig
