@@ -65,7 +65,8 @@ def test_attached_window_queues_pauses_resumes_and_stops(qapp, qtbot, tmp_path):
         qtbot.mouseClick(dlg.resume_btn, QtCore.Qt.MouseButton.LeftButton)
         assert q.get(run_id).state == "running"
         qtbot.mouseClick(dlg.stop_btn, QtCore.Qt.MouseButton.LeftButton)
-        _until(qapp, lambda: q.get(run_id).state == "stopped")
+        # STOP means one thing on every face (issue 76): the run pauses (one resume finishes it), the queue is held
+        _until(qapp, lambda: q.get(run_id).state == "paused")
         _until(qapp, lambda: "HELD" in dlg.status.text())
         assert q.held and q.get(run_id).trials_done < 8
         calls = []  # the fault acknowledgement goes to the server's RigControl with the reason and the user
