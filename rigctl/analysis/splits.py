@@ -36,17 +36,11 @@ from rigctl.analysis.tasks import (
     realtime_draw,
     realtime_rng,
 )
+from rigctl.core.trial import CONSTANT_PROFILES, has_profiles
 
 __all__ = ["PAPER_TRAIN_SPEEDS_MM_S", "PAPER_TRAIN_FORCES_G", "CONSTANT_PROFILES", "paper_splits",
            "has_profiles"]
 
-#: profile names that mean "no velocity profile" (a drum trial at one speed; an imported trial)
-CONSTANT_PROFILES = ("", "constant")
-
-
-def has_profiles(profile: Sequence[str] | np.ndarray | None) -> bool:
-    """Whether trials with these profile names are a velocity-profile session (any name but ``constant`` / empty)."""
-    return profile is not None and any(str(p) not in CONSTANT_PROFILES for p in np.asarray(profile).ravel())
 
 #: the extrapolation task's trained speeds (mm/s) and forces (g), Methods
 PAPER_TRAIN_SPEEDS_MM_S = (40.0, 60.0, 80.0)

@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -13,7 +14,18 @@ import numpy as np
 from rigctl.core.onboard import OnboardEncoding
 from rigctl.core.sensor import PAPER_SENSOR, LayoutError, SensorLayout
 
-__all__ = ["PlannedTrial", "TrialData", "REPEATED_SAMPLES_FLAG", "lower_envelope_rate_hz", "repeated_samples"]
+__all__ = ["PlannedTrial", "TrialData", "REPEATED_SAMPLES_FLAG", "CONSTANT_PROFILES", "has_profiles",
+           "lower_envelope_rate_hz", "repeated_samples"]
+
+#: profile names that mean "no velocity profile" (a drum trial at one speed; an imported trial)
+CONSTANT_PROFILES = ("", "constant")
+
+
+def has_profiles(profile: Sequence[str] | np.ndarray | None) -> bool:
+    """Whether trials with these profile names ((n,) str, or None) are a velocity-profile session: any name but
+    :data:`CONSTANT_PROFILES` (realtime_profiles, the handheld blocks). The exports name such trials' profiles and
+    give them Fig. 4's splits."""
+    return profile is not None and any(str(p) not in CONSTANT_PROFILES for p in np.asarray(profile).ravel())
 
 #: the share of a trial's samples repeating the one before above which the trial is flagged (a board or driver that
 #: holds its last reading: issue 77, 2,396 of 12,000 rows held by a plugin board read "0 dropped")

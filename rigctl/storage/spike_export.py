@@ -54,6 +54,7 @@ import numpy as np
 from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
+from rigctl.core.trial import has_profiles
 from rigctl.storage.encoded import REALTIME_VARIANTS, VARIANTS, EncodedFile, open_encoded
 from rigctl.storage.export_folder import FolderOutput, folder_output
 
@@ -98,7 +99,7 @@ class TrialLabels:
     @property
     def has_profiles(self) -> bool:
         """A velocity-profile session (any profile but ``constant`` / unknown): names carry the profile."""
-        return bool(np.any(~np.isin(self.profile, ("", "constant"))))
+        return has_profiles(self.profile)
 
     @classmethod
     def of(cls, trial_id: Sequence[int] | np.ndarray, texture: Sequence[str] | np.ndarray,
@@ -372,7 +373,7 @@ def export_trials(out_dir: str | os.PathLike[str], *, layouts: Sequence[str], se
             labels = TrialLabels.of(ids, [r["texture"] for r in rows], texture_labels,
                                     [r["speed_mm_s"] for r in rows], [r["force_g"] for r in rows],
                                     [r["duration_s"] for r in rows],
-                                    None if any(p not in ("", "constant") for p in profiles) else
+                                    None if has_profiles(profiles) else
                                     [r["repeat"] for r in rows], profile=profiles)
         unlabelled = np.flatnonzero(~(np.isfinite(labels.speed_mm_s) & np.isfinite(labels.force_g)))
         if unlabelled.size:
