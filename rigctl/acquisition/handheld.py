@@ -126,8 +126,13 @@ def _crossing(t: np.ndarray, x: np.ndarray, level: float, after: int = 0) -> tup
     if not rising.size:
         return None
     i = after + int(rising[0]) + 1
+    return i, _crossing_time(t, x, level, i)
+
+
+def _crossing_time(t: np.ndarray, x: np.ndarray, level: float, i: int) -> float:
+    """When ``x`` crossed ``level`` between samples ``i - 1`` and ``i``, interpolated linearly (s)."""
     x0, x1, t0, t1 = x[i - 1], x[i], t[i - 1], t[i]
-    return i, float(t0 + (level - x0) / (x1 - x0) * (t1 - t0)) if x1 != x0 else float(t1)
+    return float(t0 + (level - x0) / (x1 - x0) * (t1 - t0)) if x1 != x0 else float(t1)
 
 
 def _last_crossing(t: np.ndarray, x: np.ndarray, level: float, before: int) -> tuple[int, float, int] | None:
@@ -138,8 +143,7 @@ def _last_crossing(t: np.ndarray, x: np.ndarray, level: float, before: int) -> t
     if not rising.size:
         return None
     i = int(rising[-1]) + 1
-    x0, x1, t0, t1 = x[i - 1], x[i], t[i - 1], t[i]
-    return i, float(t0 + (level - x0) / (x1 - x0) * (t1 - t0)) if x1 != x0 else float(t1), int(rising.size - 1)
+    return i, _crossing_time(t, x, level, i), int(rising.size - 1)
 
 
 def _check_one_pass(t: np.ndarray, xyz: np.ndarray | None, axis: PlateAxis | None, i_in: int, i_out: int) -> None:
