@@ -30,7 +30,8 @@ from rigctl.core.version import __version__
 
 __all__ = ["BOARDS", "BOOTLOADER_BAUD", "IMAGES", "BUILD_ID_DIGITS", "BUILD_TOOLS", "REQUIRED_BUILD_ID",
            "FirmwareBuildError", "avrdude_command", "build", "build_dir", "build_id", "build_mismatch", "cache_root",
-           "known_versions", "make", "missing_build_tools", "source_digest", "source_versions", "sources"]
+           "known_versions", "make", "missing_build_tools", "MEGA_SAFETY_FLOOR", "below_safety_floor", "source_digest",
+           "source_versions", "sources"]
 
 #: the programs a build needs on the PATH (Debian: make, gcc-avr with avr-libc and arduino-core-avr, pkg-config with
 #: libsimavr-dev for the harness)
@@ -52,6 +53,12 @@ BOARDS: dict[str, tuple[str, str, str, tuple[str, ...]]] = {
 IMAGES: dict[str, tuple[str, ...]] = {"uno": ("uno_taxel", "uno_encoder"), "mega": ("mega_drum",)}
 #: both stock bootloaders talk at 115200 baud
 BOOTLOADER_BAUD = 115200
+#: the oldest drum-controller firmware (major, minor) whose safety rules this rigctl's host rules and docs/safety.md
+#: assume (1.3: the press watches its direction and a latch backs off only the way the press proved,
+#: docs/wire-protocol.md 2.5): an image below it is never run, ``--allow-firmware-mismatch`` or not
+#: (:func:`below_safety_floor`). A change to controller.c's safety rules raises the Mega's minor version and this
+#: floor with it (docs/firmware.md)
+MEGA_SAFETY_FLOOR: tuple[int, int] = (1, 3)
 #: hex digits of :func:`source_digest` a build gives the firmware as its BUILD_ID (the Uno's banner ``build=``, the
 #: Mega's 48-bit BUILD_ID_0 .. _2 input registers: docs/wire-protocol.md 1.4 and 2.2)
 BUILD_ID_DIGITS = 12
@@ -138,6 +145,22 @@ def build_mismatch(builds: dict[str, str | None], src: Path | str | None = None,
     flash = " and ".join(f"rigctl firmware --flash PORT --board {board}" for board in wrong)
     return (f"{'; '.join(runs(b, v) for b, v in wrong.items())}; this rigctl knows {known_versions(src)}: flash it "
             f"({flash}), or pass --allow-firmware-mismatch to run anyway")
+
+
+def below_safety_floor(versions: dict[str, tuple[int, ...] | None]) -> str | None:
+    """One line naming a drum controller (``versions["mega"]``: the firmware version it reports, (major, minor); None
+    or missing: it reported none) whose firmware is below :data:`MEGA_SAFETY_FLOOR`, with the flash command; None when
+    it is at or above the floor (or no Mega is named: a rig without a drum controller). Refused even where
+    ``--allow-firmware-mismatch`` allows another build: the host's safety rules rest on the controller's."""
+    if "mega" not in versions:
+        return None
+    version = versions["mega"]
+    floor = ".".join(map(str, MEGA_SAFETY_FLOOR))
+    if version is not None and tuple(version[:2]) >= MEGA_SAFETY_FLOOR:
+        return None
+    runs = "reports no firmware version" if version is None else f"runs firmware {'.'.join(map(str, version))}"
+    return (f"the Mega {runs}, below the safety floor {floor} of this rigctl (docs/safety.md): flash it (rigctl "
+            f"firmware --flash PORT --board mega); --allow-firmware-mismatch never runs an image below the floor")
 
 
 def build_id(src: Path | str | None = None) -> str:

@@ -145,7 +145,8 @@ class FaultAtOpen(RigError):
 class FirmwareMismatch(RigError):
     """A board runs another firmware build than the installed sources', or the drum controller reports build 0 (an
     image without a build id: the Arduino IDE, ``make BUILD_ID=``): one line naming both, the firmware versions this
-    rigctl knows and the flash command (:func:`rigctl.firmware.build_mismatch`)."""
+    rigctl knows and the flash command (:func:`rigctl.firmware.build_mismatch`); or a drum controller below the safety
+    floor (:func:`rigctl.firmware.below_safety_floor`), which ``--allow-firmware-mismatch`` never runs."""
 
 
 class TrialAborted(RigError):
@@ -345,13 +346,17 @@ class Rig:
 
     def _check_firmware_build(self, allow: bool) -> None:
         """Each board's build id against the installed sources' (:func:`rigctl.firmware.build_mismatch`): a mismatch
-        raises :class:`FirmwareMismatch` unless ``allow`` (then a warning)."""
+        raises :class:`FirmwareMismatch` unless ``allow`` (then a warning); a drum controller below the safety floor
+        (:func:`rigctl.firmware.below_safety_floor`) raises it whatever ``allow`` says."""
         from rigctl import firmware
 
         banner = getattr(self.stream, "banner", None) or {}
         st = self.drum.read_status()
         builds = {"mega": getattr(st, "build_id", None), "uno": banner.get("build")}
         versions = {"mega": getattr(st, "firmware", None), "uno": banner.get("firmware")}
+        floor = firmware.below_safety_floor(versions)
+        if floor:
+            raise FirmwareMismatch(floor)
         try:
             line = firmware.build_mismatch(builds, versions=versions)
         except OSError as exc:  # no firmware sources installed: nothing to compare with

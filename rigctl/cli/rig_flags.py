@@ -139,7 +139,8 @@ hx711_rate_option = click.option(
 allow_firmware_mismatch_option = click.option(
     "--allow-firmware-mismatch", is_flag=True, default=False,
     help="Run even if a board's firmware build differs from the installed sources' (checked at every open; without "
-         "it the run is refused with one line naming both builds and `rigctl firmware --flash`).")
+         "it the run is refused with one line naming both builds and `rigctl firmware --flash`). A drum controller below "
+         "the safety floor is refused all the same.")
 
 
 #: ``--truth-log FILE`` (``acquire``, ``doctor``): the simulated rig's ground truth as CSV (rigctl.simulation.truth)

@@ -536,6 +536,40 @@ def test_a_firmware_build_mismatch_is_refused_at_open_unless_allowed(monkeypatch
     assert by["firmware-build"].status == "fail" and other in by["firmware-build"].summary
 
 
+def test_a_drum_controller_below_the_safety_floor_is_never_run_even_when_a_mismatch_is_allowed(monkeypatch, tmp_path):
+    """Issue 75 item 6: ``--allow-firmware-mismatch`` runs another build (developers), never an image below the
+    safety floor (:data:`rigctl.firmware.MEGA_SAFETY_FLOOR`): the installed sources' controller opened under a floor
+    one minor version above it is refused with one line naming both versions, allowed or not, and the acquire CLI
+    says that line; at the floor it opens. The rule itself: below, at, above, none reported, no Mega."""
+    from click.testing import CliRunner
+
+    from rigctl.acquisition.rig import FirmwareMismatch
+    from rigctl.cli import main
+
+    runs = firmware.source_versions()["mega"]
+    assert firmware.MEGA_SAFETY_FLOOR <= runs  # the installed sources are at or above their own floor
+    above = (runs[0], runs[1] + 1)
+    assert firmware.below_safety_floor({"mega": runs, "uno": None}) is None
+    assert firmware.below_safety_floor({"uno": (1, 0)}) is None
+    assert "reports no firmware version" in firmware.below_safety_floor({"mega": None})
+    monkeypatch.setattr(firmware, "MEGA_SAFETY_FLOOR", above)
+    for allow in (False, True):
+        with pytest.raises(FirmwareMismatch) as exc:
+            open_rig("inprocess", seed=3, host_config_path=tmp_path / "rig.json", allow_firmware_mismatch=allow)
+        line = str(exc.value)
+        assert "\n" not in line and f"runs firmware {runs[0]}.{runs[1]}" in line, line
+        assert f"safety floor {above[0]}.{above[1]}" in line and "rigctl firmware --flash PORT --board mega" in line
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
+    args = ["acquire", "quick_check", "--inprocess", "--allow-firmware-mismatch", "--out", str(tmp_path / "a.h5"),
+            "--quiet"]
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code != 0 and "safety floor" in result.output and "Traceback" not in result.output
+    assert not (tmp_path / "a.h5").exists()
+    monkeypatch.setattr(firmware, "MEGA_SAFETY_FLOOR", runs)
+    with open_rig("inprocess", seed=3, host_config_path=tmp_path / "rig.json") as rig:
+        assert rig.drum.read_status().firmware == runs
+
+
 def test_row_correlations_tell_the_drum_direction_on_a_periodic_texture():
     """The back row repeats the front one ``lag`` samples later when the drum turns forwards; a 15 mm ridge period
     correlates again one period away, outside the two windows searched (pure: no rig)."""
