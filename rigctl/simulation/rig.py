@@ -255,7 +255,8 @@ class SimulatedRig:
         the drum controller"), and while the host's taxel reader is more than :data:`READER_LEAD_S` of frames behind
         the stream (a starved reader is a starved host); paced, while it is more than :data:`READER_LEAD_PACED_S`
         behind (a reader starved while the heartbeat of its process ran the world on: the board's output queue ran
-        over). Paced too while a request of the host is on its way (``request_on_its_way``: beside two CPU hogs a
+        over; never for a reader of a stopped face: :meth:`_reader_stopped`). Paced too while a request of the host is
+        on its way (``request_on_its_way``: beside two CPU hogs a
         HOME the kernel or a starved server thread held let a paced world run 2 s on, and the conformance test saw no
         HOMING; once a paced world that stood lagged a live sample source for good, which it now catches up). A reply
         on its way is judged by the watchdog and the host's answer wait, not waited for, paced: a reply handed on in two
@@ -266,11 +267,19 @@ class SimulatedRig:
             return True
         uno = self.uno
         lead_s = READER_LEAD_PACED_S if self.paced else READER_LEAD_S
-        if uno.streaming and uno.frames_unread() > lead_s * self.layout.sample_rate_hz:
+        if uno.streaming and uno.frames_unread() > lead_s * self.layout.sample_rate_hz and not self._reader_stopped():
             return True
         if self.paced:
             return False
         return mega.reply_on_its_way()
+
+    def _reader_stopped(self) -> bool:
+        """The taxel reader behind is a face of another process that is stopped (SIGSTOP: :meth:`_faces_stopped`), not
+        a starved one: the world does not wait for it (a stopped reader never reads until it is continued; the world
+        held for it 1.0 s of frames after the face stopped, READER_LEAD_PACED_S, short of the back-off the watchdog
+        began, and for BUSY_MAX_S of wall time: the actuator left pressing ~209 g, issue 76). Its bytes meanwhile fill
+        the board's output as a stopped host's fill a real board's USB-serial chip."""
+        return self._clock_file.host_attached() and self._faces_stopped()
 
     def _idle(self) -> bool:
         """Nothing to send at the next tick: the Uno does not stream."""

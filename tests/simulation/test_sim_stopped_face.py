@@ -1,7 +1,9 @@
 """The controller that outlives the face keeps a real controller's time (issue 76): a face SIGSTOPped while the rig
 presses and turns no longer freezes the simulated world (it held the world at its last grant: no truth row for 106 s,
 so the controller's watchdog could never act). The world waits for a starved face (its grant comes when it gets the
-CPU) but not for a stopped one (rigctl.core.port_clock.ClockFile.hosts_stopped): WATCHDOG_MS of the rig's time later
+CPU) but not for a stopped one (rigctl.core.port_clock.ClockFile.hosts_stopped), nor for its taxel reader (the
+world stood again 1.3 s after the SIGSTOP for the unread frames, the back-off begun: SimulatedRig._reader_stopped):
+WATCHDOG_MS of the rig's time later
 the controller stops the rig by itself, and a face continued afterwards finds WATCHDOG latched."""
 
 from __future__ import annotations
@@ -31,11 +33,6 @@ while True:  # a face at work: it reads the rig on the rig's clock (each wait gr
 # wall: the point is the wall clock: a face SIGSTOPped (it gets no CPU and grants no time) must not hold the simulated
 # world, which then runs on the wall's pace until the controller's watchdog stops the rig
 @pytest.mark.realtime
-@pytest.mark.xfail(strict=True, reason="open defect (stop 74's CI on 0a0a3f6, deterministic, idle too): the world runs "
-                   "on past the stopped face and WATCHDOG latches after 0.97 s, the back-off proves its way and starts, "
-                   "then the simulated world stands still again ~1.35 s of rig time after the SIGSTOP (model.time_s "
-                   "frozen; the actuator left pressing ~209 g): the stopped-face hold of rigctl.core.port_clock comes "
-                   "back; to find")
 def test_a_stopped_face_does_not_freeze_the_world_and_the_watchdog_stops_the_rig(tmp_path):
     from rigctl.simulation.rig import SimulatedRig
 
