@@ -28,8 +28,13 @@ the firmware's channels alone.
 Under simavr the cores run as fast as the CPU and the host allow (HilRig(paced=False): the rig's one clock,
 rigctl.core.shared_clock), unless ``--paced``.
 
+``--walk-advice`` (model rig): after each case an operator follows the latched fault's advice literally, three
+rounds of "do what it says, acknowledge, start" (AdviceWalk: a coil pair swapped, A+/A- swapped, the setpoint lowered,
+the rig power-cycled where the advice says so; a check finds nothing), judged on the same truth: the advice is never
+worse than the fault (issue 75 item 4).
+
 Usage: python benchmarks/bench_fault_campaign.py --cases N --seed S [--rig model|hil] [--faults NAME,...] [--paced]
-                                                 [--firmware-only] [--json] [--jobs J]
+                                                 [--firmware-only] [--walk-advice] [--json] [--jobs J]
        python benchmarks/bench_fault_campaign.py --replay SEED [--rig model|hil] [--faults ...] [--truth-log FILE]
 
 The JSON: ``cases``, ``violations`` (each with its ``seed``: ``--replay SEED`` runs that case again), ``not_run``
@@ -65,6 +70,7 @@ from rigctl.rigs import make_backend, open_rig
 from rigctl.simulation.campaign import (
     CAMPAIGN_FAULTS,
     COLUMNS,
+    CONTACT_G,
     Case,
     ModelTruth,
     check_invariants,
@@ -174,6 +180,131 @@ class Script:
             pass
 
 
+#: rounds of "do what the advice says, acknowledge, start" an operator makes after a latch (``--walk-advice``)
+WALK_ROUNDS = 3
+#: the reason the advice walker gives each acknowledgement
+WALK_REASON = "did what the fault's advice says"
+#: a tared reading this far from 0 g with nothing touching the sensor is "far from 0 g" in ACTUATOR_DIRECTION's advice
+AT_REST_FAR_G = 50.0
+
+
+class AdviceWalk:
+    """The operator who follows each latched fault's advice literally on the model rig (issue 75 item 4,
+    ``--walk-advice``), :data:`WALK_ROUNDS` times: reads the controller's fault bits, does what their advice
+    (:func:`rigctl.core.drum.fault_advice`) tells a person to do on the rig (:meth:`actions`), acknowledges
+    (:meth:`rigctl.acquisition.rig.Rig.acknowledge`, which refuses while the condition persists) and starts again: a
+    press to the setpoint the advice leaves (HOME and TARE first: :attr:`Rig.home_pending`), the force held, the
+    release. A check the advice asks for ("check its wiring") finds nothing: the fault is a single hidden one and
+    stays. ``steps``: what the walker did, in order (the case's ``advice_walk``)."""
+
+    def __init__(self, rig: Any, case: Case, script: Script) -> None:
+        self.rig, self.case, self.script = rig, case, script
+        self.force_g = float(case.forces_g[1])
+        self.steps: list[str] = []
+        self.watch = False  # the lead screw to be watched at the next start (ACTUATOR_DIRECTION's advice)
+        #: the parts the walk left wired the wrong way that were right when it began (a coil pair or A+/A- swapped on
+        #: a part that was not the fault): advice worse than the fault
+        self.miswired: list[str] = []
+
+    def actions(self, faults: int) -> list[str]:
+        """What the advice of ``faults`` (the controller's fault bits) has the operator do before acknowledging, done
+        on the model rig, by its words: ACTUATOR_DIRECTION's "with nothing touching the sensor, read FORCE_G: far
+        from 0 g ... recalibrate ... change no wire. Else press the load cell by hand ... if it falls ... swap A+ and
+        A- ... If it rises ... watch the lead screw while the start's HOME creeps" (the doctor's hand press:
+        :func:`rigctl.acquisition.doctor.drum_checks.hand_press_change_g`; the watch: :meth:`watch_the_screw`),
+        LOADCELL_REVERSED's "swap A+ and A-", FORCE_LIMIT's "lower the force setpoint" (by a fifth), HX711_STUCK's
+        "Power-cycle the rig" (the controller powers on again, the HX711 with it); every other advice is a check,
+        which finds nothing (the fault is a single hidden one)."""
+        from rigctl.acquisition.doctor import DoctorContext
+        from rigctl.acquisition.doctor.drum_checks import hand_press_change_g
+        from rigctl.core.drum import FAULT_WORDS, Fault, ResetCause
+
+        engine = self.rig.backend.engine
+        model, done = engine.model, []
+        for bit in Fault:
+            if not faults & int(bit) or bit not in FAULT_WORDS:
+                continue
+            advice = FAULT_WORDS[bit].advice
+            if "by hand" in advice and "watch the lead screw" in advice:
+                at_rest_g = float(self.rig.drum.read_status().force_g)
+                if model.contact_force_g < CONTACT_G and abs(at_rest_g) > AT_REST_FAR_G:  # what the operator sees
+                    done.append(f"{bit.name}: FORCE_G {at_rest_g:+.0f} g with nothing touching: recalibration "
+                                "asked, no wire changed")
+                    continue
+                change = hand_press_change_g(DoctorContext("inprocess", rig=self.rig))
+                if change is not None and change < 0:
+                    model.loadcell_sign = -model.loadcell_sign
+                    done.append(f"{bit.name}: hand press {change:+.0f} g, swapped A+ and A-")
+                else:
+                    self.watch = True
+                    done.append(f"{bit.name}: hand press {change:+.0f} g, the screw to be watched at the start")
+            elif "swap A+ and A-" in advice:
+                model.loadcell_sign = -model.loadcell_sign
+                done.append(f"{bit.name}: swapped A+ and A-")
+            elif "lower the force setpoint" in advice:
+                self.force_g = max(100.0, 0.8 * self.force_g)
+                done.append(f"{bit.name}: setpoint lowered to {self.force_g:.0f} g")
+            elif "Power-cycle" in advice:
+                model.freeze_hx711(False)
+                engine.controller.reset(ResetCause.POWER_ON)
+                done.append(f"{bit.name}: power-cycled")
+            else:
+                done.append(f"{bit.name}: checked, found nothing")
+        return done
+
+    def watch_the_screw(self) -> str:
+        """The operator's eyes on the lead screw during the start's HOME (ACTUATOR_DIRECTION's advice): a motor wired
+        the wrong way (the model's ``actuator_sign``, what a person sees the screw do) gets a coil pair swapped; a
+        right one is left alone."""
+        model = self.rig.backend.engine.model
+        self.watch = False
+        if model.actuator_sign < 0:
+            model.actuator_sign = -model.actuator_sign
+            return "saw the screw close the gap: swapped a coil pair of the actuator"
+        return "saw the screw turn the right way: changed no wire"
+
+    def run(self) -> None:
+        """The rounds; :attr:`miswired` set at the end."""
+        model = self.rig.backend.engine.model
+        before = {"actuator": model.actuator_sign, "load cell": model.loadcell_sign}
+        try:
+            self._rounds()
+        finally:
+            after = {"actuator": model.actuator_sign, "load cell": model.loadcell_sign}
+            self.miswired = [part for part in before if before[part] > 0 > after[part]]
+
+    def _rounds(self) -> None:
+        from rigctl.core.drum import DrumState
+
+        rig = self.rig
+        for _ in range(WALK_ROUNDS):
+            try:
+                st = rig.drum.read_status()
+            except Exception as exc:  # noqa: BLE001 - the walk ends where the host cannot go on
+                self.steps.append(f"status: {type(exc).__name__}")
+                return
+            if st.state != DrumState.FAULT and rig.safety.latch is None:
+                return
+            self.steps.extend(self.actions(int(st.faults)))
+            try:
+                rig.acknowledge(WALK_REASON, by="advice walker")
+            except Exception as exc:  # noqa: BLE001 - refused (the condition persists): the operator tries again
+                self.steps.append(f"acknowledge refused: {type(exc).__name__}")
+                self.script.hold(0.5)
+                continue
+            self.steps.append("acknowledged")
+            try:
+                rig.press(self.force_g, timeout_s=10.0)
+                self.script.hold(1.0)
+                rig.release()
+                self.steps.append(f"pressed {self.force_g:.0f} g and released")
+            except Exception as exc:  # noqa: BLE001 - the start ended as a run does: a latch, a timeout
+                self.steps.append(f"start ended: {type(exc).__name__}")
+            if self.watch:
+                self.steps.append(self.watch_the_screw())
+            self.script.hold(0.5)
+
+
 def _rig_files(case: Case, folder: Path, as_built: bool = True) -> tuple[RigConfig, Path]:
     cfg = RigConfig(mechanics=MechanicsConfig(contact_stiffness_g_per_mm=case.stiffness_g_per_mm,
                                               hx711_rate_sps=float(case.hx711_rate_sps),
@@ -184,8 +315,9 @@ def _rig_files(case: Case, folder: Path, as_built: bool = True) -> tuple[RigConf
     return cfg, host
 
 
-def run_model_case(case: Case, folder: Path, as_built: bool = True) -> dict[str, Any]:
-    """One case on the in-process model rig; its result (see :func:`result`)."""
+def run_model_case(case: Case, folder: Path, as_built: bool = True, walk_advice: bool = False) -> dict[str, Any]:
+    """One case on the in-process model rig; its result (see :func:`result`); ``walk_advice``: then the operator
+    follows the latched fault's advice (:class:`AdviceWalk`), judged on the same truth."""
     cfg, host = _rig_files(case, folder, as_built)
     power_on = [case.spec(0.0)] if case.moment == "power-on" else []
     t_wall = time.perf_counter()
@@ -193,7 +325,7 @@ def run_model_case(case: Case, folder: Path, as_built: bool = True) -> dict[str,
     truth = ModelTruth(backend.engine)  # type: ignore[attr-defined]
     if power_on:  # armed before the rig opens: in place before the rig opens, as a miswired rig is
         backend.inject_faults(power_on)  # type: ignore[attr-defined]
-    script, open_error = None, None
+    script, open_error, walk = None, None, None
     try:
         rig = Rig.connect(backend, host_config_path=str(host), refuse_fault=False)
     except Exception as exc:  # noqa: BLE001 - the rig did not open: the case did not run
@@ -202,7 +334,13 @@ def run_model_case(case: Case, folder: Path, as_built: bool = True) -> dict[str,
         with rig:
             script = Script(rig, case, 0.0)  # the engine's clock is the model's: the truth rows' times
             script.run()
-    return result(case, truth.array(), truth.latch_spans, script, open_error, time.perf_counter() - t_wall)
+            if walk_advice:
+                walk = AdviceWalk(rig, case, script)
+                walk.run()
+    out = result(case, truth.array(), truth.latch_spans, script, open_error, time.perf_counter() - t_wall)
+    if walk is not None:
+        out["advice_walk"], out["advice_miswired"] = walk.steps, walk.miswired
+    return out
 
 
 def run_hil_case(case: Case, folder: Path, truth_log: Path | None = None, paced: bool = False,
@@ -247,32 +385,34 @@ def result(case: Case, truth: np.ndarray, latches: list[tuple[float, float | Non
 
 
 def run_case(seed: int, rig: str, folder: Path, truth_log: Path | None = None, paced: bool = False,
-             faults: list[str] | None = None, as_built: bool = True, draw: str = "v2") -> dict[str, Any]:
+             faults: list[str] | None = None, as_built: bool = True, draw: str = "v2",
+             walk_advice: bool = False) -> dict[str, Any]:
     """The case of ``seed`` (drawn from ``faults``, default CAMPAIGN_FAULTS: the same on every rig; ``draw``: see
-    rigctl.simulation.campaign.draw_case) on ``rig``."""
+    rigctl.simulation.campaign.draw_case) on ``rig``; ``walk_advice`` (model rig): the advice followed after it."""
     case = draw_case(seed, faults, draw)
     if rig == "model":
-        return run_model_case(case, folder, as_built)
+        return run_model_case(case, folder, as_built, walk_advice)
     return run_hil_case(case, folder, truth_log, paced, as_built)
 
 
 def _run_chunk(seeds: list[int], rig: str, paced: bool = False, faults: list[str] | None = None,
-               as_built: bool = True) -> list[dict[str, Any]]:
+               as_built: bool = True, walk_advice: bool = False) -> list[dict[str, Any]]:
     with tempfile.TemporaryDirectory(prefix="rigctl-campaign-") as tmp:
-        return [run_case(s, rig, Path(tmp), paced=paced, faults=faults, as_built=as_built) for s in seeds]
+        return [run_case(s, rig, Path(tmp), paced=paced, faults=faults, as_built=as_built, walk_advice=walk_advice)
+                for s in seeds]
 
 
 def campaign(n: int, seed: int, rig: str, jobs: int = 1, paced: bool = False, faults: list[str] | None = None,
-             as_built: bool = True) -> dict[str, Any]:
+             as_built: bool = True, walk_advice: bool = False) -> dict[str, Any]:
     seeds = list(range(seed, seed + n))
     t_wall, cpu0 = time.perf_counter(), os.times()
     if jobs > 1:
         chunks = [seeds[i::jobs] for i in range(jobs)]
         with ProcessPoolExecutor(jobs) as pool:
             results = [r for part in pool.map(_run_chunk, chunks, [rig] * jobs, [paced] * jobs, [faults] * jobs,
-                                              [as_built] * jobs) for r in part]
+                                              [as_built] * jobs, [walk_advice] * jobs) for r in part]
     else:
-        results = _run_chunk(seeds, rig, paced, faults, as_built)
+        results = _run_chunk(seeds, rig, paced, faults, as_built, walk_advice)
     wall = time.perf_counter() - t_wall
     cpu1 = os.times()
     results.sort(key=lambda r: r["seed"])
@@ -290,8 +430,8 @@ def campaign(n: int, seed: int, rig: str, jobs: int = 1, paced: bool = False, fa
             "as_built": as_built, "faults_drawn_from": sorted(faults or CAMPAIGN_FAULTS),
             "violations": [{"seed": r["seed"], "case": r["case"], **v} for r in results for v in r["violations"]],
             "not_run": len(not_run), "not_run_cases": not_run,
-            "results": [{k: r[k] for k in ("seed", "fault", "value", "moment", "outcome", "true_force_max_g")}
-                        for r in results],
+            "results": [{k: r[k] for k in ("seed", "fault", "value", "moment", "outcome", "true_force_max_g",
+                                            "advice_walk", "advice_miswired") if k in r} for r in results],
             "worst_true_force_g": worst["true_force_max_g"] if worst else 0.0,
             "worst_seed": worst["seed"] if worst else None, "outcomes": outcomes, "faults": per_fault,
             "sim_s": round(sim, 1), "wall_s": round(wall, 1),
@@ -316,6 +456,9 @@ def main(argv: list[str] | None = None) -> int:
                          "the cases fixed then (tests/simulation/test_sim_fault_campaign.py FIXED)")
     ap.add_argument("--firmware-only", action="store_true",
                     help="no driver stall (the rig as built has one: --as-built, the default): the firmware alone")
+    ap.add_argument("--walk-advice", action="store_true",
+                    help="--rig model: after each case the operator follows the latched fault's advice literally "
+                         f"({WALK_ROUNDS} rounds of do what it says, acknowledge, start), judged on the same truth")
     ap.add_argument("--replay", type=int, default=None, metavar="SEED", help="run the case of SEED alone")
     ap.add_argument("--truth-log", type=Path, default=None, help="with --replay --rig hil: keep its truth log here")
     args = ap.parse_args(argv)
@@ -332,13 +475,16 @@ def main(argv: list[str] | None = None) -> int:
     refused = refusals(args.rig, faults or list(CAMPAIGN_FAULTS))
     if refused:
         ap.error(f"the {args.rig} rig cannot model " + "; ".join(f"{n}: {w}" for n, w in refused.items()))
+    if args.walk_advice and args.rig != "model":
+        ap.error("--walk-advice runs on the model rig (--rig model): the walker rewires the model's parts")
     as_built = not args.firmware_only
     if args.replay is not None:
         with tempfile.TemporaryDirectory(prefix="rigctl-campaign-") as tmp:
-            out = run_case(args.replay, args.rig, Path(tmp), args.truth_log, args.paced, faults, as_built, args.draw)
+            out = run_case(args.replay, args.rig, Path(tmp), args.truth_log, args.paced, faults, as_built, args.draw,
+                           args.walk_advice)
         print(json.dumps(out, indent=1))
         return 1 if out["violations"] or out["not_run"] else 0
-    out = campaign(args.cases, args.seed, args.rig, args.jobs, args.paced, faults, as_built)
+    out = campaign(args.cases, args.seed, args.rig, args.jobs, args.paced, faults, as_built, args.walk_advice)
     if args.json:
         print(json.dumps(out, indent=1))
     else:

@@ -53,9 +53,11 @@ CAUSES: dict[str, tuple[str, str]] = {
     "watchdog": ("host watchdog expired", "make sure the host program and its USB link are alive"),
     "loadcell-timeout": ("load cell not responding", "check the HX711's wiring"),
     "actuator-direction": ("actuator turning the wrong way or load cell reversed",
-                           "press the load cell by hand and read FORCE_G: if it rises, swap one coil pair of the "
-                           "actuator motor; if it falls, the cell is reversed: swap A+/A- at the HX711, not the "
-                           "motor's coils (rigctl doctor --check actuator-direction)" + _CRUSH),
+                           "with nothing touching the sensor read FORCE_G: far from 0 g, recalibrate the load cell and "
+                           "change no wire; else press the load cell by hand and read FORCE_G: if it falls, the cell "
+                           "is reversed: swap A+/A- at the HX711, not the motor's coils; if it rises, watch the lead "
+                           "screw while HOME creeps and swap one coil pair of the actuator motor only if you see it "
+                           "close the gap to the sensor (rigctl doctor --check actuator-direction)" + _CRUSH),
     "actuator-travel": ("actuator end of travel", "mount a plate, check the gap between drum and sensor (and that "
                                                   "the actuator turns the right way: a reversed motor drives into its "
                                                   "rear stop while its steps count on)"),

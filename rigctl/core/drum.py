@@ -128,12 +128,16 @@ class FaultWords(NamedTuple):
 #: reversed load cell reads the force falling as the actuator presses, so after a reset under load, backing off (or
 #: HOME) reads as a rise; swapping the motor's coils then would drive HOME into the sensor
 ACTUATOR_DIRECTION_CAUSES = (
-    "Two wirings do this: the actuator turns the wrong way (a swapped coil pair, DIR inverted) or the load cell reads "
-    "reversed (A+/A- swapped at the HX711). Tell them apart before changing anything: press the load cell by hand "
-    "and read FORCE_G (the status line; rigctl doctor --check actuator-direction does it on a simulated rig). If it "
-    "rises, the cell is right and the actuator is reversed: power off and swap one coil pair of the actuator motor "
-    "(1A/1B). If it falls, the cell is reversed: swap A+ and A- at the HX711 and leave the motor alone (swapping its "
-    "coils would drive HOME into the sensor). Then HOME")
+    "Tell the causes apart before changing any wire, the most likely first. With nothing touching the sensor, read "
+    "FORCE_G (the status line): far from 0 g, the load cell's zero moved since its calibration (a mount changed, a "
+    "cable pulled): recalibrate it (rigctl calibrate) and change no wire. Else press the load cell by hand and read "
+    "FORCE_G (rigctl doctor --check actuator-direction does it on a simulated rig): if it falls, the cell reads "
+    "reversed (A+/A- swapped at the HX711): swap A+ and A- and leave the motor alone (swapping its coils would drive "
+    "HOME into the sensor). If it rises, the cell is right, and that alone does not make the motor wrong: acknowledge "
+    "and watch the lead screw while the start's HOME creeps (it proves its way and stops where it is wrong). Only if "
+    "you see it close the gap to the sensor where it should open it, power off and swap one coil pair of the actuator "
+    "motor (1A/1B); if it moves the right way, change no wire: check the home switch and its wire and the HX711's "
+    "DOUT and SCK wires (a reading that jumps by itself). Then HOME")
 
 #: the crush class (issue 55): the faults that mean the sensor was, or could have been, pressed past what the rig
 #: allows (too much force, a force path that cannot be believed: the actuator's direction, a reversed cell, a contact

@@ -133,9 +133,15 @@ def check_controller_faults(ctx: DoctorContext) -> CheckResult:
 #: what to do about ACTUATOR_DIRECTION before the load cell's polarity is known: both causes and how to tell them
 #: apart (a coil swap is advised only once the cell is known to read right; docs/hardware/wiring.md)
 ACTUATOR_DIRECTION_FIX = ACTUATOR_DIRECTION_CAUSES + f"; {CRUSH_NOTE} (docs/hardware/wiring.md, actuator direction)"
-#: ... once the cell read a hand press as a rise: the actuator is reversed
-ACTUATOR_REVERSED_FIX = ("the load cell reads a press as a rise, so the actuator turns the wrong way: power off and "
-                         "swap one coil pair of the actuator motor at its driver (1A <-> 1B), then HOME; "
+#: ... once the cell read a hand press as a rise: the cell is right; the motor is wrong only if it is seen to turn the
+#: wrong way (a zero that moved since calibration, a noisy DOUT line or a stuck home switch latch the same fault with a
+#: good motor: the advice walker, issue 75 item 4)
+ACTUATOR_REVERSED_FIX = ("the load cell reads a press as a rise, so the cell is right; that alone does not make the "
+                         "motor wrong. Acknowledge and watch the lead screw while the start's HOME creeps (it proves "
+                         "its way and stops where it is wrong): only if you see it close the gap to the sensor where "
+                         "it should open it, power off and swap one coil pair of the actuator motor at its driver "
+                         "(1A <-> 1B), then HOME; if it moves the right way, change no wire: check the home switch, "
+                         "its wire and the HX711's DOUT and SCK wires, and the load cell's zero (rigctl calibrate); "
                          f"{CRUSH_NOTE} (docs/hardware/wiring.md, actuator direction)")
 #: ... once it read the press as a fall: the cell is reversed, the motor is right
 CELL_REVERSED_FIX = ("the load cell reads a press as a fall: the cell is reversed, not the actuator. Power off and "
@@ -200,7 +206,8 @@ def check_actuator_direction(ctx: DoctorContext) -> CheckResult:
                           ACTUATOR_DIRECTION_FIX)
         if change > HAND_PRESS_G / 2:
             return failed("actuator-direction", f"{seen}; a {HAND_PRESS_G:g} g press on the load cell read "
-                          f"{change:+.0f} g: the cell is right, the actuator turns the wrong way",
+                          f"{change:+.0f} g: the cell is right, so the actuator turns the wrong way or the reading moved by "
+                          "itself",
                           ACTUATOR_REVERSED_FIX, hand_press_change_g=change)
         if change < -HAND_PRESS_G / 2:
             return failed("actuator-direction", f"{seen}; a {HAND_PRESS_G:g} g press on the load cell read "
