@@ -343,9 +343,15 @@ def run_model_case(case: Case, folder: Path, as_built: bool = True, walk_advice:
     return out
 
 
+#: the faults of the taxel streamer (the Uno): their hil cases run both boards; every other case the Mega alone
+#: (HilRig(with_uno=False, index_frames=True): rigctl.simulation.hil_index_taxels)
+HIL_UNO_FAULTS = frozenset({"taxel-link-drop", "taxel-ohm"})
+
+
 def run_hil_case(case: Case, folder: Path, truth_log: Path | None = None, paced: bool = False,
                  as_built: bool = True) -> dict[str, Any]:
-    """One case on the firmware under simavr (both boards), its truth log written by the harness and its latches the
+    """One case on the firmware under simavr (the Mega alone, both boards for the Uno's faults: HIL_UNO_FAULTS), its
+    truth log written by the harness and its latches the
     controller's own (HilRig.latch_spans: the harness reads the state byte in the MCU's RAM); the cores run as fast as
     the CPU and the host allow (the rig's one clock, HilRig(paced=False)) unless ``paced``."""
     cfg, host = _rig_files(case, folder, as_built)
@@ -353,9 +359,12 @@ def run_hil_case(case: Case, folder: Path, truth_log: Path | None = None, paced:
     power_on = [case.spec(0.0)] if case.moment == "power-on" else []
     t_wall = time.perf_counter()
     script, open_error, latches = None, None, []
+    # the Mega alone, its trials recorded on frames marked at its index pulses, unless the fault is the Uno's
+    # (HIL_UNO_FAULTS): the simulated Uno cost more than the Mega beside it and none of the Mega's faults reaches it
+    alone = {} if case.fault in HIL_UNO_FAULTS else {"with_uno": False, "index_frames": True}
     try:
         rig = open_rig("hil", config=cfg, seed=case.seed, host_config_path=host, inject=power_on, truth_log=log,
-                       refuse_fault=False, paced=paced)
+                       refuse_fault=False, paced=paced, **alone)
     except Exception as exc:  # noqa: BLE001
         open_error = f"{type(exc).__name__}: {exc}"
     else:

@@ -1124,55 +1124,65 @@ class Rig:
             self.last_capture_frames = len(cap)
         if self.clock_fit is None or self.clock_fit.nominal_rate_hz != rate:
             self.clock_fit = DeviceClockFit(rate)
-        counts = self.clock_fit.add(cap.seq, cap.host_time_s)
+        clock_fit = self.clock_fit
+        counts = clock_fit.add(cap.seq, cap.host_time_s)
         self.drum.stop_drum()
-        k = lost = 0
-        if align:
-            try:
-                k, lost = locate_index(cap, n, t_index, rate_hz=rate, tolerance_s=tolerance_s)
-            except CaptureError as exc:
-                raise CaptureError(f"trial {planned.trial_id}: {exc} ({len(cap) / rate:.1f} s at "
-                                   f"{planned.speed_mm_s:g} mm/s)") from None
-            if lost:
-                log.warning("trial %d: the index frame was lost; the trial starts after the %d-frame gap where the "
-                            "drum angle predicts the index", planned.trial_id, lost)
-        elif cue is not None:  # start at the frame of the source trial's first sample (the frames before: in flight)
-            k_cue = first_with_seq([(cap.samples, cap.seq, cap.flags, cap.host_time_s)], cue)
-            if k_cue is None:  # never a trial started elsewhere in the source, silently
-                raise CaptureError(f"trial {planned.trial_id}: the replayed source trial's first frame (sequence "
-                                   f"number {int(cue)}) is not among the {len(cap)} frames captured")
-            k = k_cue
-        if k:
-            cap = type(cap)(cap.samples[k:], cap.seq[k:], cap.flags[k:], cap.host_time_s[k:],
-                            dropped=cap.dropped, crc_errors=cap.crc_errors)
-            counts = counts[k:]
-        ring = getattr(self.stream, "ring", None)  # a live stream's recent frames (in-process: once a live consumer asked)
-        host_rate = math.nan
-        if ring is not None and len(cap) >= n:
-            _, ring_seq, ring_t = ring.timing_since(0)
-            upto = ring_t <= cap.host_time_s[n - 1]
-            host_rate = history_rate_hz(ring_seq[upto], ring_t[upto], rate, min_frames=n)
-        data = _trial_data(planned, cap, n, statuses, started_utc=started_utc, settle_s=settle_s, spinup_s=spinup_s,
-                           layout=layout, host_rate_hz=host_rate)
-        data.attrs.update(aligned_to_index=bool(align), index_wait_frames=k, index_frame_lost=lost)
-        if replay is not None and len(cap) >= n:
-            data.attrs.update(replay.source_provenance(int(cap.seq[n - 1]), n))
-        clock_attrs = trial_clock_attrs(self.clock_fit, counts[:n], cap.host_time_s[:n])
-        data.attrs.update(clock_attrs)
-        t_first = clock_attrs["fitted_time_origin_s"]
-        data.attrs.update(recorded_means(statuses, t_first, t_first + float(counts[n - 1] - counts[0]) *
-                                         clock_attrs["clock_period_s"]))
-        data.attrs.update(mark_attrs(statuses))
-        data.attrs.update(index_speed_attrs(planned, statuses[0], statuses[-1], marks_mm_s=data.attrs[
-            "drum_speed_marks_mm_s"]))
-        if data.attrs["drum_slip"]:  # flagged like a speed mismatch (rigctl info shows it)
-            slipped = (f"the drum slipped: a speed-mark interval took {100 * data.attrs['drum_slip_max']:.0f} % more "
-                       "steps than it should")
-            data.attrs["drum_speed_warning"] = "; ".join(w for w in (data.attrs["drum_speed_warning"], slipped) if w)
-            data.attrs["drum_speed_mismatch"] = True
-        if data.attrs["drum_speed_mismatch"]:
-            log.warning("trial %d: %s", planned.trial_id, data.attrs["drum_speed_warning"])
-        return data
+
+        # the trial's frames made into its data on a thread of its own while this one feeds the drum controller's
+        # watchdog (the force loop still holds): the first trial's lazy imports and fits took 1.6-5.3 s of wall at
+        # load ~15 on the thread that feeds it, and a simulated Mega alone (its world run on the heartbeat's wall-time
+        # grants) latched WATCHDOG after 4.2 s of its time (the fault campaign under simavr, issue 80 item 4)
+        def finish() -> TrialData:
+            nonlocal cap, counts
+            k = lost = 0
+            if align:
+                try:
+                    k, lost = locate_index(cap, n, t_index, rate_hz=rate, tolerance_s=tolerance_s)
+                except CaptureError as exc:
+                    raise CaptureError(f"trial {planned.trial_id}: {exc} ({len(cap) / rate:.1f} s at "
+                                       f"{planned.speed_mm_s:g} mm/s)") from None
+                if lost:
+                    log.warning("trial %d: the index frame was lost; the trial starts after the %d-frame gap where the "
+                                "drum angle predicts the index", planned.trial_id, lost)
+            elif cue is not None:  # start at the frame of the source trial's first sample (the frames before: in flight)
+                k_cue = first_with_seq([(cap.samples, cap.seq, cap.flags, cap.host_time_s)], cue)
+                if k_cue is None:  # never a trial started elsewhere in the source, silently
+                    raise CaptureError(f"trial {planned.trial_id}: the replayed source trial's first frame (sequence "
+                                       f"number {int(cue)}) is not among the {len(cap)} frames captured")
+                k = k_cue
+            if k:
+                cap = type(cap)(cap.samples[k:], cap.seq[k:], cap.flags[k:], cap.host_time_s[k:],
+                                dropped=cap.dropped, crc_errors=cap.crc_errors)
+                counts = counts[k:]
+            ring = getattr(self.stream, "ring", None)  # a live stream's recent frames (in-process: once a live consumer asked)
+            host_rate = math.nan
+            if ring is not None and len(cap) >= n:
+                _, ring_seq, ring_t = ring.timing_since(0)
+                upto = ring_t <= cap.host_time_s[n - 1]
+                host_rate = history_rate_hz(ring_seq[upto], ring_t[upto], rate, min_frames=n)
+            data = _trial_data(planned, cap, n, statuses, started_utc=started_utc, settle_s=settle_s, spinup_s=spinup_s,
+                               layout=layout, host_rate_hz=host_rate)
+            data.attrs.update(aligned_to_index=bool(align), index_wait_frames=k, index_frame_lost=lost)
+            if replay is not None and len(cap) >= n:
+                data.attrs.update(replay.source_provenance(int(cap.seq[n - 1]), n))
+            clock_attrs = trial_clock_attrs(clock_fit, counts[:n], cap.host_time_s[:n])
+            data.attrs.update(clock_attrs)
+            t_first = clock_attrs["fitted_time_origin_s"]
+            data.attrs.update(recorded_means(statuses, t_first, t_first + float(counts[n - 1] - counts[0]) *
+                                             clock_attrs["clock_period_s"]))
+            data.attrs.update(mark_attrs(statuses))
+            data.attrs.update(index_speed_attrs(planned, statuses[0], statuses[-1], marks_mm_s=data.attrs[
+                "drum_speed_marks_mm_s"]))
+            if data.attrs["drum_slip"]:  # flagged like a speed mismatch (rigctl info shows it)
+                slipped = (f"the drum slipped: a speed-mark interval took {100 * data.attrs['drum_slip_max']:.0f} % more "
+                           "steps than it should")
+                data.attrs["drum_speed_warning"] = "; ".join(w for w in (data.attrs["drum_speed_warning"], slipped) if w)
+                data.attrs["drum_speed_mismatch"] = True
+            if data.attrs["drum_speed_mismatch"]:
+                log.warning("trial %d: %s", planned.trial_id, data.attrs["drum_speed_warning"])
+            return data
+
+        return self.while_fed(finish)
 
 
 def index_speed_attrs(planned: PlannedTrial, first, last, *, marks_mm_s: float = math.nan) -> dict:

@@ -94,7 +94,13 @@ class PtyRigBackend(PortBackend):
 
     def taxels(self, **options: Any) -> TaxelStream:
         """The taxel stream reader, waiting ``sim.taxel_banner_timeout_s`` for the banner where the rig gives one (a
-        bootloader's wait in simulated time)."""
+        bootloader's wait in simulated time); a rig whose frames stand in for a board it does not run gives those
+        (``sim.index_frame_source()``: the Mega alone under simavr, :class:`rigctl.simulation.hil_index_taxels.
+        IndexFrames`)."""
+        stand_in = getattr(self.sim, "index_frame_source", None)
+        source = stand_in() if stand_in is not None else None
+        if source is not None:
+            return source
         timeout = getattr(self.sim, "taxel_banner_timeout_s", None)
         if timeout:
             options = {"banner_timeout_s": timeout, **options}

@@ -134,6 +134,10 @@ class HilRig:
     with_uno : bool
         Run the Uno too (default). False runs the Mega alone (no taxel port, no feeder): half the CPU for tests
         of the drum controller only.
+    index_frames : bool
+        With ``with_uno=False``: the backend's taxel source gives frames from the rig's clock marked at the Mega's
+        index pulses (:class:`rigctl.simulation.hil_index_taxels.IndexFrames`: mid-scale counts, no measurement) so
+        that the host records trials with the Mega alone (the fault campaign's Mega faults, issue 80 item 4).
     bootloaders : bool
         Load the boards' real bootloaders beside the sketches (the Mega's stk500v2, the Uno's optiboot: harness
         ``--bootloader``, docs/firmware.md) and reset each board when a host opens its port (the DTR auto-reset):
@@ -185,8 +189,12 @@ class HilRig:
                  uno_boot_ms: float = 250.0, with_uno: bool = True, taxel_ohm: float = 47_000.0,
                  tel_ms: float = 50.0, bootloaders: bool = False, index_bounce: int = 0,
                  mega_image: str = "mega_drum", truth_log=None, factory_calibrated: bool = True,
-                 uno_image: str = "uno_taxel", paced: bool = True):
+                 uno_image: str = "uno_taxel", paced: bool = True, index_frames: bool = False):
         from rigctl.simulation.model import RigConfig
+
+        if index_frames and with_uno:
+            raise ValueError("index_frames stands in for the Uno: with with_uno=False only")
+        self.index_frames = bool(index_frames)
 
         self.config = config or RigConfig()
         self.seed = seed
@@ -227,6 +235,8 @@ class HilRig:
         self.request_times: collections.deque[float] = collections.deque(maxlen=1000)
         self.actuator_steps: collections.deque[tuple[float, int]] = collections.deque(maxlen=50_000)
         self.index_pulses = 0
+        #: the Mega's index pulses (its harness's IDX lines), s of the rig's clock
+        self.index_times_s: collections.deque[float] = collections.deque(maxlen=100_000)
         self.isr: dict[str, float] = {}
         #: latest ``LOAD`` report of the Uno harness (every simulated second): ``busy_cycles_per_tick`` (mean over the
         #: second) and ``busy_max_per_tick`` (its largest tick; ``busy_max_since_start``): CPU cycles per 1 ms tick
@@ -284,6 +294,15 @@ class HilRig:
         if not self.with_uno:
             raise HilError("this HilRig runs the Mega alone (with_uno=False): no taxel port")
         return self._running(self._uno, "Uno").port
+
+    def index_frame_source(self):
+        """The taxel source of a rig built with ``index_frames`` (:class:`rigctl.simulation.hil_index_taxels.
+        IndexFrames` on :attr:`clock`); None otherwise."""
+        if not self.index_frames:
+            return None
+        from rigctl.simulation.hil_index_taxels import IndexFrames
+
+        return IndexFrames(self.clock, lambda: list(self.index_times_s))
 
     @property
     def drum_boot_wait_s(self) -> float:
@@ -676,6 +695,9 @@ class HilRig:
                 self._cond.notify_all()
         elif line.startswith("IDX "):
             self.index_pulses += 1
+            # on the rig's one clock (its world time as the line is read: the harness's own t= is the core's cycle
+            # count, which a reset or a held core sets apart from the clock's), a few ms late at most
+            self.index_times_s.append(self.clock.now() if self.clock is not None else _parse_kv(line)["t"])
             if self._uno is not None:
                 self._uno.send("sync")  # the index output is wired to the Uno's sync-in
 

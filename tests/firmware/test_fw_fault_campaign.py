@@ -14,7 +14,8 @@ from rigctl.simulation.campaign import FORCE_BOUND_G
 
 pytestmark = pytest.mark.hil
 
-#: cases under simavr (both boards, paced to the wall clock: ~10 CPU-s and 20-40 s a case)
+#: cases under simavr (the Mega alone for its faults, both boards for the Uno's: benchmarks/bench_fault_campaign.py
+#: HIL_UNO_FAULTS)
 HIL_SLICE = 2
 SLICE_SEED = 5500
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_fault_campaign.py"
