@@ -156,7 +156,7 @@ def test_uno_commands(tables, h):
 def test_encoder_commands(tables, h):
     rows = tables["encoder-commands"]
     assert {r["command"] for r in rows} == {c.name for c in wire.EncoderCommand}
-    payload = {"CALIBRATE": wire.ENC_CALIBRATE_PAYLOAD, "SPEED": 4, "FINISH": 2}
+    payload = {"CALIBRATE": wire.ENC_CALIBRATE_PAYLOAD, "ENCODE": 2, "SPEED": 4, "FINISH": 2}
     for r in rows:
         byte = r["byte"].strip("`")
         assert len(byte) == 1 and wire.EncoderCommand[r["command"]].value == byte.encode()
@@ -166,6 +166,12 @@ def test_encoder_commands(tables, h):
     # the encoder's commands and the streamer's share one byte space
     assert not {c.value for c in wire.EncoderCommand} & {c.value for c in wire.UnoCommand}
     assert h["RIGCTL_ENC_N_TAXELS"] == wire.ENC_N_TAXELS and h["RIGCTL_ENC_N_WINDOWS"] == wire.ENC_N_WINDOWS
+    # the ring ENCODE starts from (common/sa_ring.h), as the host and the banner know it
+    ring = (Path(wire.__file__).parents[1] / "arduino" / "common" / "sa_ring.h").read_text()
+    sizes = {m[0]: int(m[1]) for m in re.findall(r"#define (SA_RING_SAMPLES|SA_RING_SPARE) (\d+)u", ring)}
+    assert sizes["SA_RING_SAMPLES"] == wire.ENC_RING_SAMPLES
+    assert wire.ENC_RING_SAMPLES - sizes["SA_RING_SPARE"] == wire.ENC_RING_MAX_BACK
+    assert f"ring={wire.ENC_RING_SAMPLES}" in wire.UNO_ENCODER_FIELD
 
 
 @pytest.mark.parametrize("table, prefix, sync, size", [("spike-frame", "SPIKE", wire.SPIKE_SYNC, wire.SPIKE_FRAME_SIZE),

@@ -21,7 +21,7 @@ from rigctl.devices import wire
 
 __all__ = ["STOP_BURST", "STOP_RESEND_S", "CountsFrame", "EncoderStreamParser", "OnboardEncoder", "OnboardScan", "SpikeFrame",
            "applied_speeds",
-           "calibrate_command", "finish_command", "held_windows", "speed_command", "spike_raster"]
+           "calibrate_command", "encode_command", "finish_command", "held_windows", "speed_command", "spike_raster"]
 
 _MAX_SPEED_CMM_S = 0xFFFF
 #: s of spike frames after STOP before the host sends :data:`STOP_BURST` (the board stops within a frame: ~10 ms)
@@ -48,6 +48,15 @@ def calibrate_command(taxel_min: np.ndarray, taxel_max: np.ndarray, k: int = 100
         raise ValueError(f"k must be 1-255, got {k}")
     payload = np.concatenate([lo, hi, [int(k)]]).astype("<u2").tobytes()
     return _with_crc(wire.EncoderCommand.CALIBRATE, payload)
+
+
+def encode_command(from_sample: int) -> bytes:
+    """ENCODE from sample ``from_sample`` (counted from ARM's first sample, 0; sent mod 65536): the board encodes
+    from it, out of its ring of the last :data:`rigctl.devices.wire.ENC_RING_SAMPLES` samples (docs/wire-protocol.md
+    1.5). Raises ValueError for a negative sample."""
+    if from_sample < 0:
+        raise ValueError(f"the sample to encode from must be >= 0, got {from_sample}")
+    return _with_crc(wire.EncoderCommand.ENCODE, struct.pack("<H", int(from_sample) % 65536))
 
 
 def _cmm(speed_mm_s: float) -> int:
@@ -167,9 +176,10 @@ class EncoderStreamParser:
 
 
 def spike_raster(frames: list[SpikeFrame]) -> np.ndarray:
-    """The spike frames of one scan (from its first, seq 0) as a raster ``(n_samples, 9)`` uint8 (1 = a spike at
-    that sample). Raises ValueError if the frames leave a gap (a frame lost: its samples are unknown)."""
-    n = 0
+    """The spike frames of one scan (from its first: the sample ENCODE started at) as a raster ``(n_samples, 9)``
+    uint8 (1 = a spike at that sample). Raises ValueError if the frames leave a gap (a frame lost: its samples are
+    unknown)."""
+    n = frames[0].seq if frames else 0
     rows = []
     for f in frames:
         if f.seq != n % 65536:
@@ -214,20 +224,24 @@ class _Port(Protocol):
 class OnboardScan:
     """One scan the board encoded: ``raster`` ((n, 9) uint8 spikes per sample), ``counts`` (its counts frame),
     ``speeds_mm_s`` ((n_windows,) the speed each real-time window was scaled with: the ones sent, a held window's
-    the one before), ``held`` (the windows held)."""
+    the one before), ``held`` (the windows held), ``late_start`` (samples the board began after the one ENCODE named:
+    its ring no longer held it, docs/wire-protocol.md 1.5; 0 when it began there)."""
 
     raster: np.ndarray
     counts: CountsFrame
     speeds_mm_s: np.ndarray
     held: list[int]
+    late_start: int = 0
 
 
 class OnboardEncoder:
     """The host's side of one scan on the Uno encoder image, on its open serial port (a pyserial ``Serial`` with a
-    short read timeout, or anything with ``read(size)`` and ``write(data)``): :meth:`start` calibrates and starts
-    it, :meth:`poll` reads what has arrived, :meth:`send_speed` gives each 100 ms window's speed in order (the window
-    numbers are counted here), :meth:`finish` stops, gives the last speeds and returns the :class:`OnboardScan`.
-    The board's features are :func:`rigctl.encoding.features.counted_realtime_features` of its counts and speeds."""
+    short read timeout, or anything with ``read(size)`` and ``write(data)``): :meth:`arm` calibrates it and starts its
+    ring of samples, :meth:`encode_from` starts the encoding at a sample of it (the finger's entry), :meth:`start`
+    does both from ARM's first sample, :meth:`poll` reads what has arrived, :meth:`send_speed` gives each 100 ms
+    window's speed in order (the window numbers are counted here), :meth:`finish` stops, gives the last speeds and
+    returns the :class:`OnboardScan`. The board's features are :func:`rigctl.encoding.features
+    .counted_realtime_features` of its counts and speeds."""
 
     def __init__(self, port: _Port) -> None:
         self.port = port
@@ -239,6 +253,7 @@ class OnboardEncoder:
         self.parser = EncoderStreamParser()
         self.speeds_sent: list[float] = []
         self.speed_windows: list[int] = []
+        self.from_sample: int | None = None
 
     def _write(self, data: bytes) -> None:
         if self._clock is None:
@@ -252,13 +267,38 @@ class OnboardEncoder:
         """Samples the board has encoded (and sent the spike frames of) so far."""
         return sum(len(f.masks) for f in self.parser.spikes)
 
-    def start(self, taxel_min: np.ndarray, taxel_max: np.ndarray, k: int = 100) -> None:
-        """CALIBRATE with the 9 taxels' range and ``k``, then ENCODE: a new scan (errors of
+    def arm(self, taxel_min: np.ndarray, taxel_max: np.ndarray, k: int = 100, *, from_sample: int | None = None) -> None:
+        """CALIBRATE with the 9 taxels' range and ``k``, then ARM: a new scan, its samples into the board's ring
+        (sample 0 the first after ARM); with ``from_sample`` ENCODE from it at once (errors of
         :func:`calibrate_command`)."""
         self.parser = EncoderStreamParser()
         self.speeds_sent = []
         self.speed_windows = []
-        self._write(calibrate_command(taxel_min, taxel_max, k) + wire.EncoderCommand.ENCODE.value)
+        self.from_sample = None
+        out = calibrate_command(taxel_min, taxel_max, k) + wire.EncoderCommand.ARM.value
+        if from_sample is not None:
+            out += encode_command(from_sample)
+            self.from_sample = int(from_sample)
+        self._write(out)
+
+    def encode_from(self, from_sample: int) -> None:
+        """ENCODE from sample ``from_sample`` of the ring (since ARM): the finger's entry. Errors of
+        :func:`encode_command`."""
+        self._write(encode_command(from_sample))
+        self.from_sample = int(from_sample)
+
+    def start(self, taxel_min: np.ndarray, taxel_max: np.ndarray, k: int = 100) -> None:
+        """CALIBRATE, ARM and ENCODE from ARM's first sample: a new scan encoded from now (errors of
+        :func:`calibrate_command`)."""
+        self.arm(taxel_min, taxel_max, k, from_sample=0)
+
+    @property
+    def first_sample(self) -> int | None:
+        """The sample (since ARM) the board began encoding at, from its first spike frame (None before it): the one
+        ENCODE named, or later when its ring no longer held that one."""
+        if not self.parser.spikes or self.from_sample is None:
+            return None
+        return self.from_sample + (self.parser.spikes[0].seq - self.from_sample) % 65536
 
     def abandon(self) -> None:
         """STOP the board's scan without finishing it (no counts frame is read): the host gives the pass up."""
@@ -339,4 +379,6 @@ class OnboardEncoder:
         n_windows = -(-self.parser.counts[0].samples // 100)
         if applied.size < n_windows:  # samples whose spike frame came after FINISH: FINISH scaled them with the last
             applied = np.concatenate([applied, np.repeat(applied[-1:], n_windows - applied.size)])
-        return OnboardScan(spike_raster(self.parser.spikes), self.parser.counts[0], applied, held)
+        first = self.first_sample
+        late = first - self.from_sample if first is not None and self.from_sample is not None else 0
+        return OnboardScan(spike_raster(self.parser.spikes), self.parser.counts[0], applied, held, late)

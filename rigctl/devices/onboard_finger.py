@@ -2,9 +2,12 @@
 encoder image (docs/firmware.md "The encoder in the Uno image", docs/wire-protocol.md 1.5) and sends, for each scan,
 its spikes and its counts frame instead of raw taxel frames.
 
-One scan (:func:`encode_pass`), as the paper's microcontroller does it with the host's tracker: once the finger
-enters the plate's used part (the tracker's position past :data:`rigctl.core.handheld.USED_START_MM`) the host
-sends CALIBRATE (the classifier's taxel range) and ENCODE; after each 100 ms window of the board's samples it sends
+One scan (:func:`encode_pass`), as the paper's microcontroller does it with the host's tracker: at the cue the host
+sends CALIBRATE (the classifier's taxel range) and ARM (the board keeps its last 32 samples in a ring); once the
+tracker shows the finger's entry into the plate's used part (its position through
+:data:`rigctl.core.handheld.USED_START_MM`, interpolated: the host's cut's entry) the host sends ENCODE with the
+entry's sample, and the board encodes from it, out of its ring (issue 78 item 4: before, it began at the host's
+ENCODE, 5-30 ms after the entry); after each 100 ms window of the board's samples it sends
 the tracker's mean velocity over that window as SPEED (window-numbered); once the finger has left the used part
 (past :data:`rigctl.core.handheld.USED_END_MM`) it stops the board, sends the speeds of the windows still without
 one and FINISH, and takes the counts frame (:class:`rigctl.devices.encoder_stream.OnboardEncoder`). The result is a
@@ -115,7 +118,8 @@ def onboard_encoding(scan: OnboardScan, rate_hz: float) -> OnboardEncoding:
 
 def encode_pass(enc: OnboardEncoder, board: BoardRange, motion: Callable[[], tuple[np.ndarray, np.ndarray]], *,
                 now: Callable[[], float], started: Callable[[float], float], stop: Callable[[], bool] | None = None,
-                timeout_s: float = 60.0) -> tuple[float, OnboardScan] | None:
+                timeout_s: float = 60.0, on_encode: Callable[[float, int], None] | None = None,
+                rate_hz: float = 1000.0) -> tuple[float, OnboardScan] | None:
     """One scan on the board (module docstring).
 
     Parameters
@@ -125,13 +129,16 @@ def encode_pass(enc: OnboardEncoder, board: BoardRange, motion: Callable[[], tup
     motion : ``motion()`` -> the tracker's samples so far on the scan's clock: times (k,) s and positions along the
         plate (k,) mm.
     now : the scan's clock, s.
-    started : ``started(t_sent)`` once ENCODE is sent (``t_sent`` = ``now()``); returns the time of the board's first
-        encoded sample on the scan's clock (the windows are counted from it).
+    started : ``started(t_sent)`` once ARM is sent (``t_sent`` = ``now()``); returns the time of the board's sample 0
+        (its first after ARM) on the scan's clock: sample k is at that time + k / ``rate_hz``.
     stop : the scan is abandoned (the board stopped, None returned) once it turns true.
+    on_encode : ``on_encode(now(), sample)`` as ENCODE is sent (the host's view then, and the entry's sample).
+    rate_hz : the board's sample rate.
 
     Returns
     -------
-    (the time of the board's first encoded sample, the scan) or None when stopped.
+    (the time of the board's first encoded sample: the entry's, or later when the host was later than the board's
+    ring holds, ``scan.late_start``; the scan) or None when stopped.
 
     Raises
     ------
@@ -139,32 +146,39 @@ def encode_pass(enc: OnboardEncoder, board: BoardRange, motion: Callable[[], tup
         No pass within ``timeout_s``, the board sent nothing, or its counts frame did not come.
     """
     t_begin = time.monotonic()
-    t_enc = math.nan
+    enc.arm(board.taxel_min, board.taxel_max, board.k)
+    t_zero = started(now())  # the board's sample 0 on the scan's clock
+    t_in = math.nan
     w_origin = math.nan
     while True:
         if stop is not None and stop():
-            if not math.isnan(t_enc):
-                enc.abandon()
+            enc.abandon()
             return None
         if time.monotonic() - t_begin > timeout_s:
-            if not math.isnan(t_enc):
-                enc.abandon()
+            enc.abandon()
             raise ScanError(f"no pass of the finger through the plate within {timeout_s:g} s")
         try:
             t, along = motion()
-        except ScanError:  # the motion refused (a tracker stamped ahead): the board stopped if it was encoding
-            if not math.isnan(t_enc):
-                enc.abandon()
+        except ScanError:  # the motion refused (a tracker stamped ahead): the board stopped
+            enc.abandon()
             raise
-        if math.isnan(t_enc):
-            if t.size >= 2 and _entered(t, along) is not None:
-                enc.start(board.taxel_min, board.taxel_max, board.k)
-                t_enc = now()
-                w_origin = started(t_enc)
-            else:
+        if math.isnan(t_in):
+            entry = _entered(t, along) if t.size >= 2 else None
+            if entry is None:
                 time.sleep(POLL_S)
+                continue
+            t_in = entry
+            # the first sample at or after the entry (the host's cut keeps the frames from the entry on)
+            from_sample = max(0, math.ceil((t_in - t_zero) * rate_hz - 1e-6))
+            if on_encode is not None:
+                on_encode(now(), from_sample)
+            enc.encode_from(from_sample)
             continue
         n = enc.poll()
+        first = enc.first_sample
+        if first is None:  # no spike frame yet: where the board began is not known
+            continue
+        w_origin = t_zero + first / rate_hz
         w = len(enc.speeds_sent)
         # a window's speed once the tracker has passed its end, or (a tracker dropout) once the board is half way
         # through the next window: later, the board would scale it with the last speed (held)
@@ -172,8 +186,7 @@ def encode_pass(enc: OnboardEncoder, board: BoardRange, motion: Callable[[], tup
             enc.send_speed(window_speed_mm_s(t, along, w_origin + WINDOW_S * w, w_origin + WINDOW_S * (w + 1),
                                              enc.speeds_sent[-1] if enc.speeds_sent else 0.0))
             w += 1
-        after = t >= t_enc
-        if np.any(along[after] > USED_END_MM):
+        if np.any(along[t >= t_in] > USED_END_MM):
             break
     rest: list[float] = []
     for i in range(len(enc.speeds_sent), len(enc.speeds_sent) + FINISH_WINDOWS):
@@ -227,6 +240,7 @@ class OnboardFingerScans:
                                 self.layout, {"tracker_stream": self.tracker.name,
                                               "taxels_from": f"encoded on the taxel board on {self.port_name}",
                                               "onboard_crc_errors": int(enc.parser.crc_errors),
+                                              "onboard_late_start_samples": int(scan.late_start),
                                               **getattr(self.tracker, "counters", dict)()})
 
     def describe(self) -> dict[str, Any]:

@@ -106,10 +106,11 @@ class UnoCommand(bytes, enum.Enum):
 
 
 class EncoderCommand(bytes, enum.Enum):
-    """Host -> Uno commands of the encoder image (spec table 1.5): CALIBRATE, SPEED and FINISH carry a payload and
-    its CRC-16 (:mod:`rigctl.devices.encoder_stream` builds them)."""
+    """Host -> Uno commands of the encoder image (spec table 1.5): CALIBRATE, ENCODE, SPEED and FINISH carry a payload
+    and its CRC-16 (:mod:`rigctl.devices.encoder_stream` builds them)."""
 
     CALIBRATE = b"C"
+    ARM = b"A"
     ENCODE = b"E"
     SPEED = b"V"
     FINISH = b"F"
@@ -134,8 +135,12 @@ ENC_N_WINDOWS = 20
 #: CALIBRATE's payload (the 9 minima, the 9 maxima and k, uint16 each): the longest a command of the board waits for
 ENC_CALIBRATE_PAYLOAD = 2 * (2 * ENC_N_TAXELS + 1)
 COUNTS_FRAME_SIZE = 11 + 2 * ENC_N_TAXELS * ENC_N_WINDOWS + 2  # 373
-#: the encoder image's banner and identity carry this field
-UNO_ENCODER_FIELD = "encoder=sa_fixed"
+#: the encoder image's banner and identity carry this field (the ring of samples that ENCODE starts from: ARM's)
+UNO_ENCODER_FIELD = "encoder=sa_fixed ring=32"
+#: samples the encoder image's ring holds (common/sa_ring.h SA_RING_SAMPLES), and the furthest back ENCODE may start
+#: from the newest (SA_RING_MAX_BACK: the rest is room while the encoder catches up)
+ENC_RING_SAMPLES = 32
+ENC_RING_MAX_BACK = 28
 
 UNO_BANNER_PREFIX = "#RIGCTL-UNO READY"
 UNO_IDENTITY_PREFIX = "#RIGCTL-UNO"

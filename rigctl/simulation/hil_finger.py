@@ -5,10 +5,11 @@
 For each cue the simulated operator makes its pass (:class:`rigctl.simulation.operator.SimulatedOperator`: the
 taxel readings at 1 kHz and the tracker's samples); the readings are played to the board's ADC (the top layer, and
 the same counts on the bottom layer's pins), and the host encodes the pass on the board exactly as on a real finger
-(:func:`rigctl.devices.onboard_finger.encode_pass`): ENCODE once the finger enters the used part, each window's
-tracker velocity as SPEED, FINISH once it has left. The tracker's samples are handed out on the board's clock (the
-row it plays, :meth:`rigctl.simulation.hil.HilRig.playing_row`, then the samples it encoded: its waveform's row 0 is
-the pass's time 0), so a simavr slower or faster than the wall clock changes nothing.
+(:func:`rigctl.devices.onboard_finger.encode_pass`): ARM at the cue, ENCODE from the entry's sample once the tracker
+shows the finger entering the used part, each window's tracker velocity as SPEED, FINISH once it has left. The
+tracker's samples are handed out on the board's clock (the row it plays, :meth:`rigctl.simulation.hil.HilRig
+.playing_row`, then the samples it encoded: its waveform's row 0 is the pass's time 0), so a simavr slower or faster
+than the wall clock changes nothing.
 Each scan keeps what the board's ADC converted (:attr:`HilFingerScans.played`: the pass's readings and the row of
 the first encoded sample) for a check against the host's integer kernel, and when the host sent its commands (how far
 its view of the pass had got, and how long after its last read it wrote): on a starved machine the host acts late,
@@ -53,7 +54,8 @@ START_TIMEOUT_S = 10.0
 @dataclass(frozen=True)
 class PlayedScan:
     """One pass as the board's ADC saw it: ``taxels`` (n, 9) the readings played (row 0 = the pass's time 0),
-    ``first_row`` the row of the board's first encoded sample, ``samples`` how many it encoded.
+    ``first_row`` the row of the board's first encoded sample, ``samples`` how many it encoded, ``arm_row`` the row of
+    its sample 0 (ARM's), ``from_sample`` the sample ENCODE named (the entry's, since ARM).
 
     And the host's side: ``encode_view_s`` the pass's time (s) the host's view had reached when it sent ENCODE;
     ``speeds_sent`` (samples the host had received, s since its last read returned) at each window's SPEED, window 0
@@ -67,6 +69,8 @@ class PlayedScan:
     encode_view_s: float = math.nan
     speeds_sent: tuple[tuple[int, float], ...] = ()
     stop_sent: tuple[int, float] = (-1, math.nan)
+    arm_row: int = 0
+    from_sample: int = 0
 
     def encoded(self) -> np.ndarray:
         """(samples, 9) the readings the board encoded."""
@@ -169,10 +173,9 @@ class HilFingerScans:
         noted.samples = lambda: enc.samples
         starts = len(self.hil.encoder_start_rows)
         first: list[int] = []
-        view: list[float] = []
+        view: list[tuple[float, int]] = []
 
         def started(t_sent: float) -> float:
-            view.append(t_sent)
             deadline = time.monotonic() + START_TIMEOUT_S
             while len(self.hil.encoder_start_rows) <= starts:
                 if time.monotonic() > deadline:
@@ -182,8 +185,8 @@ class HilFingerScans:
             return first[0] / 1000.0
 
         def now() -> float:  # the board's clock: the row it converts (its encoded samples once it encodes)
-            if first:
-                return (first[0] + enc.samples) / 1000.0
+            if first and enc.first_sample is not None:
+                return (first[0] + enc.first_sample + enc.samples) / 1000.0
             row, wall = self.hil.playing_row(), time.monotonic() - t_played
             # simavr runs at most in real time: a row ahead of the wall clock is the last waveform's (its reply before
             # the new one began), not this one's
@@ -193,17 +196,21 @@ class HilFingerScans:
             n = int(np.searchsorted(t_pass, now(), side="right"))
             return t_pass[:n], along[:n]
 
-        got = encode_pass(enc, self.board, motion, now=now, started=started, stop=stop, timeout_s=self.timeout_s)
+        got = encode_pass(enc, self.board, motion, now=now, started=started, stop=stop, timeout_s=self.timeout_s,
+                          on_encode=lambda t, k: view.append((t, k)))
         if got is None:
             return None
         t0, scan = got
         written = dict(zip(enc.speed_windows, ((n, s) for _, n, s in noted.sent(wire.EncoderCommand.SPEED.value))))
         speeds = tuple(written.get(w, (WINDOW_SAMPLES * (w + 2) + 1, math.nan)) for w in range(len(enc.speeds_sent)))
         stop_sent = [(n, s) for _, n, s in noted.sent(wire.UnoCommand.STOP.value)][0]
-        self.played.append(PlayedScan(wave, first[0], int(scan.counts.samples), view[0], speeds, stop_sent))
+        first_row = first[0] + (enc.first_sample or 0)
+        self.played.append(PlayedScan(wave, first_row, int(scan.counts.samples), view[0][0], speeds, stop_sent,
+                                      first[0], view[0][1]))
         return onboard_raw_scan(t_pass, along, t0, onboard_encoding(scan, self.layout.sample_rate_hz), self.layout,
                                 {**raw.attrs, "taxels_from": "encoded on the Uno encoder image under simavr",
-                                 "onboard_crc_errors": int(enc.parser.crc_errors)})
+                                 "onboard_crc_errors": int(enc.parser.crc_errors),
+                                 "onboard_late_start_samples": int(scan.late_start)})
 
     def describe(self) -> dict[str, Any]:
         return {**self.operator.describe(), "kind": "simulated_operator_hil_onboard_encoder",

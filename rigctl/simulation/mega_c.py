@@ -33,7 +33,7 @@ from typing import Any
 from rigctl import firmware
 from rigctl.core.version import __version__
 
-__all__ = ["HostBuildError", "SOURCES", "build", "build_dir", "compiler", "load", "open_library"]
+__all__ = ["HostBuildError", "SOURCES", "build", "build_dir", "build_shared", "compiler", "load", "open_library"]
 
 #: the C sources of the library, relative to the firmware source folder (:func:`rigctl.firmware.sources`)
 SOURCES = ("mega_drum/controller.c", "mega_drum/force_pi.c", "mega_drum/steprate.c", "host_model/mega_host.c")
@@ -60,22 +60,24 @@ def compiler() -> str:
                          "model rig: install one (Debian: apt-get install gcc)")
 
 
-def _digest(src: Path, cc: str) -> str:
+def _digest(src: Path, cc: str, files: tuple[str, ...] = (*SOURCES, *_HEADERS), flags: tuple[str, ...] = _FLAGS) -> str:
     h = hashlib.sha256()
-    h.update(" ".join((cc, *_FLAGS)).encode() + b"\0")
-    for rel in (*SOURCES, *_HEADERS):
+    h.update(" ".join((cc, *flags)).encode() + b"\0")
+    for rel in files:
         h.update(rel.encode() + b"\0" + (src / rel).read_bytes() + b"\0")
     return h.hexdigest()
 
 
-def build_dir(src: Path | None = None) -> Path:
-    """The folder of the library built from ``src`` (default the installed firmware sources); only computes it."""
+def build_dir(src: Path | None = None, *, files: tuple[str, ...] = (*SOURCES, *_HEADERS),
+              flags: tuple[str, ...] = _FLAGS) -> Path:
+    """The folder of the library built from ``src`` (default the installed firmware sources; ``files`` the sources
+    and headers it is built from, ``flags`` the compile flags: the drum controller's by default); only computes it."""
     override = os.environ.get("RIGCTL_HOST_BUILD")
     if override:
         return Path(override)
     src = src or firmware.sources()
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "rigctl" / "host" / f"{__version__}-{_digest(src, compiler())[:16]}"
+    return Path(base) / "rigctl" / "host" / f"{__version__}-{_digest(src, compiler(), files, flags)[:16]}"
 
 
 def _cdef_of(src: Path, cc: str) -> str:
@@ -95,34 +97,43 @@ def _cdef_of(src: Path, cc: str) -> str:
     return "\n".join([structs["force_pi_t"], structs["ctl_t"], *functions]) + "\n"
 
 
+def build_shared(src: Path, out: Path, *, sources: tuple[str, ...], headers: tuple[str, ...],
+                 flags: tuple[str, ...], lib: str, what: str, cdef: str | None = None) -> Path:
+    """Build the firmware ``sources`` (relative to ``src``; ``headers`` in the digest too) with ``flags`` into the
+    shared library ``out/lib`` unless it is there from the same sources, and write ``cdef`` (the compiler's
+    preprocessed declarations, :func:`_cdef_of`, when None) beside it; returns ``out``. Concurrent builds into one
+    folder wait for each other; the library is written to a temporary name and renamed whole. HostBuildError
+    (``what``: the firmware part, for its message)."""
+    cc = compiler()
+    out.mkdir(parents=True, exist_ok=True)
+    stamp = _digest(src, cc, (*sources, *headers), flags)
+    with open(out / ".lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if (out / "digest").is_file() and (out / "digest").read_text() == stamp and (out / lib).is_file():
+            return out
+        text = cdef if cdef is not None else _cdef_of(src, cc)
+        fd, tmp = tempfile.mkstemp(suffix=".so", dir=out)
+        os.close(fd)
+        try:
+            proc = subprocess.run([cc, *flags, "-I", str(src), *(str(src / s) for s in sources), "-o", tmp, "-lm"],
+                                  capture_output=True, text=True)
+            if proc.returncode != 0:
+                raise HostBuildError(f"{cc} failed to build {what} for the host:\n{proc.stderr.strip()}")
+            os.replace(tmp, out / lib)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        (out / _CDEF).write_text(text)
+        (out / "digest").write_text(stamp)
+    return out
+
+
 def build(src: Path | None = None, out: Path | None = None) -> Path:
     """Build the library (and its ``ctl_t`` declaration) into ``out`` (default :func:`build_dir`) unless it is there;
     returns the folder. Concurrent builds into one folder wait for each other. HostBuildError."""
     src = src or firmware.sources()
-    cc = compiler()
-    out = out or build_dir(src)
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = _digest(src, cc)
-    with open(out / ".lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if (out / "digest").is_file() and (out / "digest").read_text() == stamp and (out / _LIB).is_file():
-            return out
-        cdef = _cdef_of(src, cc)
-        fd, tmp = tempfile.mkstemp(suffix=".so", dir=out)
-        os.close(fd)
-        try:
-            proc = subprocess.run([cc, *_FLAGS, "-I", str(src), *(str(src / s) for s in SOURCES), "-o", tmp, "-lm"],
-                                  capture_output=True, text=True)
-            if proc.returncode != 0:
-                raise HostBuildError(f"{cc} failed to build the drum controller's controller.c for the host:\n"
-                                     f"{proc.stderr.strip()}")
-            os.replace(tmp, out / _LIB)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-        (out / _CDEF).write_text(cdef)
-        (out / "digest").write_text(stamp)
-    return out
+    return build_shared(src, out or build_dir(src), sources=SOURCES, headers=_HEADERS, flags=_FLAGS, lib=_LIB,
+                        what="the drum controller's controller.c")
 
 
 @functools.cache

@@ -19,6 +19,7 @@ from rigctl.devices.encoder_stream import (
     SpikeFrame,
     applied_speeds,
     calibrate_command,
+    encode_command,
     finish_command,
     held_windows,
     speed_command,
@@ -118,7 +119,7 @@ class _FakeBoard:
 
     def write(self, data: bytes) -> int:
         self.written += data
-        if data[:1] == b"E" or data.endswith(b"E"):
+        if encode_command(0) in data:
             self.out += _spike(0, [1] * 10) + _spike(10, [2] * 10) + _spike(20, [4] * 5)
         if data[:1] == b"F":
             body = struct.pack("<IHHB", 25, 0, 0, 1) + bytes(2 * wire.ENC_N_TAXELS * wire.ENC_N_WINDOWS)

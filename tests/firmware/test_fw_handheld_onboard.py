@@ -42,17 +42,25 @@ LATE_S = 2 * HOST_PERIOD_S
 
 
 def _judge_extent(p, o, attrs, what: str) -> None:
-    """The board encoded the used part of the scan, from the finger's entry to its exit (+-0.15 s), widened by how
-    late the host measured itself to be beyond its own period: its view of the pass at ENCODE past the entry, and at
-    STOP past the exit plus the time from its read to the write."""
+    """The board encoded the used part of the scan from the finger's entry, as the host's cut starts it (issue 78
+    item 4): its first sample is the first at or after the interpolated entry, out of its ring of ARM's samples,
+    unless the host's ENCODE came later than the ring reaches back (the host's own view of the pass then, past the
+    entry); to the exit (+0.15 s), widened by how late the host measured itself to be beyond its own period at STOP
+    (its view past the exit plus the time from its read to the write)."""
     t0 = p.first_row / 1000.0  # the board's first sample on the pass's clock
     assert attrs["trial_time_origin_s"] == pytest.approx(t0)
+    assert p.first_row == p.arm_row + p.from_sample + attrs["onboard_late_start_samples"]
+    late_view_ms = (p.encode_view_s - attrs["scan_enter_s"]) * 1000.0
+    if attrs["onboard_late_start_samples"] == 0:
+        assert 0.0 <= t0 - attrs["scan_enter_s"] < 0.001 + 1e-9, what
+    else:  # the ring no longer held the entry: the host's ENCODE came more than its reach after it
+        assert late_view_ms > wire.ENC_RING_MAX_BACK - 1, f"{what}; host's view at ENCODE {late_view_ms:.1f} ms"
+    print(f"entry at row {attrs['scan_enter_s'] * 1000:.2f}, first encoded row {p.first_row} (ARM's {p.arm_row}), "
+          f"host's view at ENCODE {late_view_ms:.1f} ms past the entry")
     seen, write_s = p.stop_sent
-    late_start = max(0.0, p.encode_view_s - attrs["scan_enter_s"] - HOST_PERIOD_S)
     late_stop = max(0.0, t0 + seen / 1000.0 - attrs["scan_leave_s"] - HOST_PERIOD_S) + max(0.0, write_s - HOST_PERIOD_S)
-    extra = o.samples / 1000.0 - attrs["scan_duration_s"]
-    assert -0.15 - late_start < extra < 0.15 + late_stop, \
-        f"{what}; host late at ENCODE {late_start:.3f} s, at STOP {late_stop:.3f} s"
+    extra = o.samples / 1000.0 - (attrs["scan_leave_s"] - t0)
+    assert -0.002 < extra < 0.15 + late_stop, f"{what}; host late at STOP {late_stop:.3f} s"
 
 
 def _judge_held(p, held: list[int], what: str) -> None:

@@ -57,12 +57,14 @@
 /* 1.5 the on-board encoder image (uno_encoder): host -> Uno commands with a payload (little-endian) and a CRC-16 of
  * the payload, and the two frames it sends while encoding instead of the taxel frames */
 #define RIGCTL_ENC_CMD_CALIBRATE     'C'   /* + 9 x uint16 minimum, 9 x uint16 maximum, uint16 k, crc */
-#define RIGCTL_ENC_CMD_ENCODE        'E'   /* a new scan of the encoder: spike frames instead of taxel frames */
+#define RIGCTL_ENC_CMD_ARM           'A'   /* a new scan: its samples into the board's ring (sample 0 = the first) */
+#define RIGCTL_ENC_CMD_ENCODE        'E'   /* + uint16 sample since ARM to encode from, crc: spike frames from it */
 #define RIGCTL_ENC_CMD_SPEED         'V'   /* + uint16 window, uint16 speed (0.01 mm/s), crc */
 #define RIGCTL_ENC_CMD_FINISH        'F'   /* + uint16 speed (0.01 mm/s), crc */
 #define RIGCTL_ENC_CALIBRATE_PAYLOAD 38
 #define RIGCTL_ENC_SPEED_PAYLOAD     4
 #define RIGCTL_ENC_FINISH_PAYLOAD    2
+#define RIGCTL_ENC_ENCODE_PAYLOAD    2
 #define RIGCTL_ENC_N_TAXELS          9
 #define RIGCTL_ENC_N_WINDOWS         20
 /* spike frame: sync, seq of its first sample, n samples (1-10), flags, 10 x uint16 spike masks, crc over 2..25 */
@@ -77,7 +79,7 @@
 #define RIGCTL_SPIKE_FRAME_SIZE      28
 #define RIGCTL_SPIKE_CRC_START       2
 #define RIGCTL_SPIKE_FLAG_HELD_BIT    0  /* a window was scaled with the last speed since the previous spike frame */
-#define RIGCTL_SPIKE_FLAG_DROPPED_BIT 1  /* a sample was dropped (the encoder's queue was full) since then */
+#define RIGCTL_SPIKE_FLAG_DROPPED_BIT 1  /* a sample was dropped (the encoder's ring was full) since then */
 #define RIGCTL_SPIKE_FLAG_SYNC_IN_BIT 2  /* a sync-in edge was latched since then */
 #define RIGCTL_SPIKE_FLAG_HELD        (1u << RIGCTL_SPIKE_FLAG_HELD_BIT)
 #define RIGCTL_SPIKE_FLAG_DROPPED     (1u << RIGCTL_SPIKE_FLAG_DROPPED_BIT)
@@ -95,7 +97,7 @@
 #define RIGCTL_COUNTS_FRAME_SIZE     373
 #define RIGCTL_COUNTS_CRC_START      2
 /* the encoder image's banner and identity: the stream's, and the encoder it runs */
-#define RIGCTL_UNO_ENC_FIELD         " encoder=sa_fixed"
+#define RIGCTL_UNO_ENC_FIELD         " encoder=sa_fixed ring=32"  /* ring: common/sa_ring.h SA_RING_SAMPLES */
 
 /* ---- 2. Drum controller (Mega), Modbus RTU ------------------------------------------------------------- */
 /* 500000 baud: exact at 16 MHz (UBRR = 1), and on the 16U2 bridge; 115200 was +2.1 % off (docs/wire-protocol.md) */

@@ -36,6 +36,7 @@
 #include "uno_pins.h"
 #ifdef UNO_SA_ENCODER
 #include "../common/sa_encoder.h"
+#include "../common/sa_ring.h"
 #endif
 
 /* ---- sampler state (ADC ISR + tick ISR) ---- */
@@ -60,7 +61,23 @@ static volatile uint8_t adc_primed; /* a scan has completed since the ADC was sw
 #define TX_SPIKE0 0x08
 #define TX_SPIKE1 0x10
 #define TX_COUNTS 0x20
+#ifdef UNO_SA_ENCODER
+/* the taxel frames' buffers and the text reply's are idle while the encoder is armed or encodes (ARM waits for the
+ * transmitter; START and IDENTIFY end the encoder's scan first): the sample ring lives in their place (its 384 bytes
+ * would not fit beside them: docs/firmware.md, "The encoder in the Uno image") */
+static union {
+    struct {
+        uint8_t frames[2][RIGCTL_FRAME_SIZE];
+        uint8_t text[96];
+    } stream;
+    uint8_t ring[SA_RING_SAMPLES][SA_RING_BYTES];
+} shared_buf;
+#define tx_buf (shared_buf.stream.frames)
+#define text_buf (shared_buf.stream.text)
+#else
 static uint8_t tx_buf[2][RIGCTL_FRAME_SIZE];
+static uint8_t text_buf[96];
+#endif
 static const uint8_t *volatile tx_ptr;
 static volatile uint16_t tx_left;
 static volatile uint8_t tx_owner;      /* owner bit of the block being sent */
@@ -154,17 +171,15 @@ static void tx_push_locked(const uint8_t *p, uint16_t n, uint8_t owner)
 }
 
 #ifdef UNO_SA_ENCODER
-/* ---- encoder state: the tick queues the top layer's samples, loop() encodes them ---- */
-#define ENC_QUEUE 8 /* a power of 2: samples waiting for loop() (the speed scaling holds it ~1 ms) */
-static uint16_t enc_q[ENC_QUEUE][RIGCTL_ENC_N_TAXELS];
-static volatile uint8_t enc_q_head, enc_q_tail;
-static volatile uint8_t encoding;       /* the stream feeds the encoder (ENCODE) */
-static volatile uint16_t enc_dropped;   /* samples the full queue lost this scan */
+/* ---- encoder state: the tick puts the top layer's samples into the ring (common/sa_ring.c), loop() encodes them
+ * from the sample ENCODE names ---- */
+static sa_ring_t ring;
+static volatile uint8_t encoding;       /* the stream feeds the ring (ARM, then ENCODE) */
 static volatile uint8_t enc_tick_flags; /* spike frame flags the tick latched (DROPPED, SYNC_IN) */
-static volatile uint8_t enc_first;      /* the next sample is the scan's first: the marker pin goes high */
+static volatile uint8_t enc_first;      /* the next sample is sample 0 of the ring (ARM's): the marker pin goes high */
 
-/* the tick's part: the completed scan's taxels 0-8 into the queue (the sample a taxel frame of this tick would
- * carry); the marker pin (D11) is high from the tick that takes a scan's first sample to the next tick */
+/* the tick's part: the completed scan's taxels 0-8 into the ring (the sample a taxel frame of this tick would
+ * carry); the marker pin (D11) is high from the tick that takes ARM's first sample to the next tick */
 static inline void enc_enqueue(const uint16_t *scan, uint8_t frame_flags)
 {
     if (enc_first) {
@@ -174,15 +189,7 @@ static inline void enc_enqueue(const uint16_t *scan, uint8_t frame_flags)
         UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_MARK);
     }
     if (frame_flags & RIGCTL_FLAG_SYNC_IN) enc_tick_flags |= RIGCTL_SPIKE_FLAG_SYNC_IN;
-    uint8_t h = enc_q_head, next = (uint8_t)((h + 1) & (ENC_QUEUE - 1));
-    if (next == enc_q_tail) {
-        enc_dropped++;
-        enc_tick_flags |= RIGCTL_SPIKE_FLAG_DROPPED;
-        return;
-    }
-    uint16_t *q = enc_q[h];
-    for (uint8_t i = 0; i < RIGCTL_ENC_N_TAXELS; i++) q[i] = scan[i];
-    enc_q_head = next;
+    if (!sa_ring_push(&ring, scan)) enc_tick_flags |= RIGCTL_SPIKE_FLAG_DROPPED;
 }
 #endif
 
@@ -353,8 +360,6 @@ ISR(USART_RX_vect)
     }
 }
 
-static uint8_t text_buf[96];
-
 /* build=<the sources' digest> (docs/wire-protocol.md 1.4): given by the build (make BUILD_ID=..., as rigctl's firmware
  * builds do), so that the host can tell a board flashed from other sources with the same version */
 #ifdef RIGCTL_BUILD_ID
@@ -386,11 +391,23 @@ static void send_line_P(const char *s)
     }
 }
 
+#ifdef UNO_SA_ENCODER
+/* the encoder's scan ends without its counts (START, IDENTIFY): the ring's storage goes back to the frames */
+static void enc_release(void)
+{
+    cli();
+    encoding = 0;
+    ring.encoding = 0;
+    ring.tail = ring.head;
+    sei();
+}
+#endif
+
 static void stop_and_drain(void)
 {
     streaming = 0;
 #ifdef UNO_SA_ENCODER
-    encoding = 0;
+    enc_release();
 #endif
     while (tx_busy) {
     }
@@ -398,6 +415,9 @@ static void stop_and_drain(void)
 
 static void stream_start(uint8_t encode)
 {
+#ifdef UNO_SA_ENCODER
+    if (!encode) enc_release();
+#endif
     cli();
     seq = 0;
     sync_latched = 0;
@@ -419,8 +439,7 @@ static uint16_t cal_min[RIGCTL_ENC_N_TAXELS], cal_max[RIGCTL_ENC_N_TAXELS], cal_
 static uint8_t spike_buf[2][RIGCTL_SPIKE_FRAME_SIZE];
 static uint16_t spike_masks[RIGCTL_SPIKE_MASKS];
 static uint8_t spike_n, spike_flags, spike_b;
-static uint16_t spike_seq, enc_seq;  /* seq of the spike frame's first sample, of the next sample */
-static uint8_t enc_q_max;             /* deepest the queue was this scan */
+static uint16_t spike_seq, enc_seq;  /* seq of the spike frame's first sample, of the next sample (since ARM) */
 static uint8_t counts_head[RIGCTL_COUNTS_COUNTS_OFFSET], counts_crc[2];
 
 #define ENC_PROBE_ON() (UNO_PROBE_PORT |= (1 << UNO_PROBE_ENCODER))
@@ -451,13 +470,11 @@ static void spike_flush(void)
  * several samples, more than the receive ring holds at the line rate) */
 static uint8_t enc_poll(void)
 {
-    if (enc_q_tail != enc_q_head) {
+    uint16_t x[RIGCTL_ENC_N_TAXELS];
+    if (ring.encoding && sa_ring_pop(&ring, x)) {
         ENC_PROBE_ON();
-        uint8_t depth = (uint8_t)((enc_q_head - enc_q_tail) & (ENC_QUEUE - 1));
-        if (depth > enc_q_max) enc_q_max = depth;
         uint32_t held = enc.held_windows;
-        uint16_t mask = sa_step(&enc, enc_q[enc_q_tail]);
-        enc_q_tail = (uint8_t)((enc_q_tail + 1) & (ENC_QUEUE - 1));
+        uint16_t mask = sa_step(&enc, x);
         if (enc.held_windows != held) spike_flags |= RIGCTL_SPIKE_FLAG_HELD;
         if (spike_n == 0) spike_seq = enc_seq;
         spike_masks[spike_n++] = mask;
@@ -469,25 +486,37 @@ static uint8_t enc_poll(void)
     return 0;
 }
 
-/* ENCODE: a new scan (calibration of the last CALIBRATE) and the stream with it */
-static void enc_start(void)
+/* ARM: a new scan's samples into the ring (sample 0 the first after ARM), nothing encoded or sent yet */
+static void enc_arm(void)
 {
     cli();
     streaming = 0;
     encoding = 0;
+    ring.encoding = 0;
     sei();
-    while (tx_owned & TX_COUNTS) { /* the last scan's counts are sent from the encoder's state */
+    while (tx_busy) { /* the last scan's counts (sent from the encoder's state), a taxel frame or a text reply in
+                       * the storage the ring takes over */
     }
-    enc_q_head = enc_q_tail = 0;
-    enc_dropped = 0;
     enc_tick_flags = 0;
     enc_first = 1;
-    enc_q_max = 0;
     spike_n = 0;
     spike_flags = 0;
-    enc_seq = 0;
-    sa_init(&enc, cal_min, cal_max, cal_k);
+    sa_ring_arm(&ring, shared_buf.ring);
     stream_start(1);
+}
+
+/* ENCODE from sample `from` (since ARM; ARM first if the board is not armed): the encoder at rest (calibration of
+ * the last CALIBRATE), the ring from that sample (sa_ring_begin: the oldest it holds if `from` is older), spike frames
+ * numbered from ARM */
+static void enc_begin(uint16_t from)
+{
+    if (!encoding) enc_arm();
+    sa_init(&enc, cal_min, cal_max, cal_k);
+    spike_n = 0;
+    spike_flags = 0;
+    cli();
+    enc_seq = sa_ring_begin(&ring, from);
+    sei();
 }
 
 /* FINISH: stop the stream, encode what is queued, scale the last windows, send the counts frame */
@@ -504,9 +533,9 @@ static void enc_finish(uint16_t speed_cmm_s)
     sa_finish(&enc, speed_cmm_s);
     ENC_PROBE_OFF();
     cli();
-    uint16_t dropped = enc_dropped;
+    uint16_t dropped = ring.dropped;
     sei();
-    counts_frame_head(counts_head, enc.n, (uint16_t)enc.held_windows, dropped, enc_q_max, &enc.counts[0][0],
+    counts_frame_head(counts_head, enc.n, (uint16_t)enc.held_windows, dropped, ring.depth_max, &enc.counts[0][0],
                       counts_crc);
     cli();
     /* the counts go out from the encoder's state itself (uint16 little-endian on the AVR, as the frame has them) */
@@ -541,6 +570,8 @@ static void enc_command(uint8_t cmd, const uint8_t *p, uint8_t n)
         ENC_PROBE_OFF();
     } else if (cmd == RIGCTL_ENC_CMD_FINISH) {
         enc_finish(le16(p));
+    } else if (cmd == RIGCTL_ENC_CMD_ENCODE) {
+        enc_begin(le16(p));
     }
 }
 
@@ -601,16 +632,18 @@ void loop(void)
             }
             continue;
         }
-        if (c == RIGCTL_ENC_CMD_CALIBRATE || c == RIGCTL_ENC_CMD_SPEED || c == RIGCTL_ENC_CMD_FINISH) {
+        if (c == RIGCTL_ENC_CMD_CALIBRATE || c == RIGCTL_ENC_CMD_SPEED || c == RIGCTL_ENC_CMD_FINISH ||
+            c == RIGCTL_ENC_CMD_ENCODE) {
             cmd_byte = c;
             cmd_got = 0;
             cmd_need = (uint8_t)((c == RIGCTL_ENC_CMD_CALIBRATE ? RIGCTL_ENC_CALIBRATE_PAYLOAD
                                   : c == RIGCTL_ENC_CMD_SPEED   ? RIGCTL_ENC_SPEED_PAYLOAD
+                                  : c == RIGCTL_ENC_CMD_ENCODE  ? RIGCTL_ENC_ENCODE_PAYLOAD
                                                                 : RIGCTL_ENC_FINISH_PAYLOAD) + 2);
             continue;
         }
-        if (c == RIGCTL_ENC_CMD_ENCODE) {
-            enc_start();
+        if (c == RIGCTL_ENC_CMD_ARM) {
+            enc_arm();
             continue;
         }
 #endif
@@ -619,7 +652,7 @@ void loop(void)
         } else if (c == RIGCTL_UNO_CMD_STOP) {
             streaming = 0;
 #ifdef UNO_SA_ENCODER
-            encoding = 0;
+            encoding = 0; /* the ring's samples are still encoded (FINISH); an armed ring's are not */
 #endif
         } else if (c == RIGCTL_UNO_CMD_IDENTIFY) {
             stop_and_drain();
@@ -639,7 +672,7 @@ void loop(void)
     cli();
     if (rx_tail == rx_head
 #ifdef UNO_SA_ENCODER
-        && enc_q_tail == enc_q_head
+        && !(ring.encoding && sa_ring_depth(&ring))
 #endif
     ) {
         sleep_enable();
