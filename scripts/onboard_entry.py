@@ -103,11 +103,12 @@ def main() -> None:
         except ScanError:  # refused (the tracker lost the finger, ...): the operator scans again, as on the rig
             refused += 1
             continue
-        t_in = _entered(t, along)
+        i_out = int(np.flatnonzero(along > 250.0)[0])
+        t_in = _entered(t[:i_out + 1], along[:i_out + 1])  # the last entry before the exit, as the host's cut
         seen = t[np.searchsorted(t, t_in)] + late.uniform(*a.late_ms) / 1000.0
         encode_at = math.ceil(seen * RATE_HZ)
         entry = math.ceil(t_in * RATE_HZ - 1e-6)
-        t_out = t[np.flatnonzero((along > 250.0) & (t > t_in))[0]]
+        t_out = t[i_out]
         exit_row = math.ceil((t_out + 0.03) * RATE_HZ)
         right["host"] += host == truth
         for mode, frm in (("encode", encode_at), ("entry", entry)):

@@ -177,15 +177,17 @@ def _children_cpu_s() -> float:
 
 
 def run_page(page: str, work: Path, *, timeout_s: float = 900, preload: bool = True,
-             client: Callable[[], Path] | None = None) -> list[BlockRun]:
+             client: Callable[[], Path] | None = None,
+             select: Callable[[Block], bool] = lambda b: b.runs_here) -> list[BlockRun]:
     """Run the blocks of ``page`` that run here, in order, in one shell in ``work``; an AssertionError names the
     block that failed (or printed a traceback) with its output. ``preload``: the shell's ``rigctl`` is the preloaded
     one of tests/launcher.py (the same command lines, without ~2-5 s of CPU to start each): ``client()``'s (the
     ``rigctl`` client script of the test worker's server, started once for the worker's tests: each command runs in
     the page's folder and environment all the same) when the page runs a ``rigctl`` command, else a server of the
     page's own when it runs more than two (starting one costs about what one command's imports do). Whatever the
-    page left running (a ``&`` job) ends with it."""
-    runnable = [b for b in blocks(page) if b.runs_here]
+    page left running (a ``&`` job) ends with it. ``select``: the blocks that run (default: those the page's own
+    test runs)."""
+    runnable = [b for b in blocks(page) if select(b)]
     work.mkdir(parents=True, exist_ok=True)
     path = work.parent / f".{Path(page).stem}.sh"
     path.write_text(script(runnable, work))

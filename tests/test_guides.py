@@ -37,7 +37,14 @@ NOT_RUN = {
     # "Other people's files": tests/storage/test_storage_import_numbers.py runs the section's two blocks
     ("docs/my-sensor.md", "import numpy as np\nfrom datetime import datetime"): "run-by",
     ("docs/my-sensor.md", "rigctl import logger__felt.csv"): "run-by",
-    ("docs/guides/spiking-networks.md", "import snntorch"): "not-run",
+    ("docs/guides/spiking-networks.md", "pip install tonic snntorch"): "not-run",
+    ("docs/guides/spiking-networks.md", "# rigctl_tonic.py"): "run-by",
+    ("docs/guides/spiking-networks.md", "# tonic_frames.py"): "run-by",
+    ("docs/guides/spiking-networks.md", "python tonic_frames.py"): "run-by",
+    ("docs/guides/spiking-networks.md", "# snntorch_windows.py"): "run-by",
+    ("docs/guides/spiking-networks.md", "python snntorch_windows.py"): "run-by",
+    ("docs/guides/spiking-networks.md", "# spikingjelly_frames.py"): "run-by",
+    ("docs/guides/spiking-networks.md", "python spikingjelly_frames.py"): "run-by",
     ("docs/guides/spiking-networks.md", "pip install 'rigctl[nir]'"): "not-run",
     ("docs/guides/my-hardware.md", "rigctl acquire quick_check --rig csvboard --rig-option port=/dev/ttyUSB0"):
         "not-run",

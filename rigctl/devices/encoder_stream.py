@@ -265,7 +265,15 @@ class OnboardEncoder:
     @property
     def samples(self) -> int:
         """Samples the board has encoded (and sent the spike frames of) so far."""
-        return sum(len(f.masks) for f in self.parser.spikes)
+        return sum(len(f.masks) for f in self.spikes)
+
+    @property
+    def spikes(self) -> list[SpikeFrame]:
+        """The spike frames of the scan's encoding: those from the sample the last ENCODE named on (a frame of an
+        earlier ENCODE of the same ARM, still on its way, is not the scan's)."""
+        if self.from_sample is None:
+            return list(self.parser.spikes)
+        return [f for f in self.parser.spikes if (f.seq - self.from_sample) % 65536 < 32768]
 
     def arm(self, taxel_min: np.ndarray, taxel_max: np.ndarray, k: int = 100, *, from_sample: int | None = None) -> None:
         """CALIBRATE with the 9 taxels' range and ``k``, then ARM: a new scan, its samples into the board's ring
@@ -282,10 +290,13 @@ class OnboardEncoder:
         self._write(out)
 
     def encode_from(self, from_sample: int) -> None:
-        """ENCODE from sample ``from_sample`` of the ring (since ARM): the finger's entry. Errors of
-        :func:`encode_command`."""
+        """ENCODE from sample ``from_sample`` of the ring (since ARM): the finger's entry. Again, with a later
+        sample, for a pass begun again (the board starts over from it, out of its ring; the speeds given so far are
+        dropped). Errors of :func:`encode_command`."""
         self._write(encode_command(from_sample))
         self.from_sample = int(from_sample)
+        self.speeds_sent = []
+        self.speed_windows = []
 
     def start(self, taxel_min: np.ndarray, taxel_max: np.ndarray, k: int = 100) -> None:
         """CALIBRATE, ARM and ENCODE from ARM's first sample: a new scan encoded from now (errors of
@@ -296,9 +307,10 @@ class OnboardEncoder:
     def first_sample(self) -> int | None:
         """The sample (since ARM) the board began encoding at, from its first spike frame (None before it): the one
         ENCODE named, or later when its ring no longer held that one."""
-        if not self.parser.spikes or self.from_sample is None:
+        spikes = self.spikes
+        if not spikes or self.from_sample is None:
             return None
-        return self.from_sample + (self.parser.spikes[0].seq - self.from_sample) % 65536
+        return self.from_sample + (spikes[0].seq - self.from_sample) % 65536
 
     def abandon(self) -> None:
         """STOP the board's scan without finishing it (no counts frame is read): the host gives the pass up."""
@@ -374,11 +386,11 @@ class OnboardEncoder:
             if time.monotonic() > deadline:
                 raise TimeoutError(f"no counts frame from the board within {timeout_s} s of FINISH")
             self.poll()
-        held = held_windows(self.parser.spikes)
+        held = held_windows(self.spikes)
         applied = applied_speeds(np.array(self.speeds_sent), held)
         n_windows = -(-self.parser.counts[0].samples // 100)
         if applied.size < n_windows:  # samples whose spike frame came after FINISH: FINISH scaled them with the last
             applied = np.concatenate([applied, np.repeat(applied[-1:], n_windows - applied.size)])
         first = self.first_sample
         late = first - self.from_sample if first is not None and self.from_sample is not None else 0
-        return OnboardScan(spike_raster(self.parser.spikes), self.parser.counts[0], applied, held, late)
+        return OnboardScan(spike_raster(self.spikes), self.parser.counts[0], applied, held, late)

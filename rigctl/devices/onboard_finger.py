@@ -97,13 +97,13 @@ def window_speed_mm_s(t: np.ndarray, along_mm: np.ndarray, t0: float, t1: float,
 
 
 def _entered(t: np.ndarray, along: np.ndarray) -> float | None:
-    """The time the finger rose through the used part's start (interpolated), or None."""
-    below = np.flatnonzero(along < USED_START_MM)
-    if not below.size:
+    """The time the finger last rose through the used part's start (interpolated), or None: the host's cut's entry
+    (the last before the exit: a pass begun, abandoned and begun again starts at its new entry)."""
+    above = along >= USED_START_MM
+    rising = np.flatnonzero(above[1:] & ~above[:-1])
+    if not rising.size:
         return None
-    i = below[0] + int(np.argmax(along[below[0]:] >= USED_START_MM))
-    if along[i] < USED_START_MM or i == 0:
-        return None
+    i = int(rising[-1]) + 1
     x0, x1 = along[i - 1], along[i]
     return float(t[i - 1] + (USED_START_MM - x0) / (x1 - x0) * (t[i] - t[i - 1])) if x1 != x0 else float(t[i])
 
@@ -162,8 +162,8 @@ def encode_pass(enc: OnboardEncoder, board: BoardRange, motion: Callable[[], tup
         except ScanError:  # the motion refused (a tracker stamped ahead): the board stopped
             enc.abandon()
             raise
-        if math.isnan(t_in):
-            entry = _entered(t, along) if t.size >= 2 else None
+        entry = _entered(t, along) if t.size >= 2 else None
+        if math.isnan(t_in) or (entry is not None and entry > t_in):  # the entry, or a pass begun again: from it
             if entry is None:
                 time.sleep(POLL_S)
                 continue

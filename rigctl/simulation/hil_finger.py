@@ -205,8 +205,8 @@ class HilFingerScans:
         speeds = tuple(written.get(w, (WINDOW_SAMPLES * (w + 2) + 1, math.nan)) for w in range(len(enc.speeds_sent)))
         stop_sent = [(n, s) for _, n, s in noted.sent(wire.UnoCommand.STOP.value)][0]
         first_row = first[0] + (enc.first_sample or 0)
-        self.played.append(PlayedScan(wave, first_row, int(scan.counts.samples), view[0][0], speeds, stop_sent,
-                                      first[0], view[0][1]))
+        self.played.append(PlayedScan(wave, first_row, int(scan.counts.samples), view[-1][0], speeds, stop_sent,
+                                      first[0], view[-1][1]))
         return onboard_raw_scan(t_pass, along, t0, onboard_encoding(scan, self.layout.sample_rate_hz), self.layout,
                                 {**raw.attrs, "taxels_from": "encoded on the Uno encoder image under simavr",
                                  "onboard_crc_errors": int(enc.parser.crc_errors),

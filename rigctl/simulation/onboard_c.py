@@ -116,7 +116,8 @@ class BoardModel:
             self._masks.append(int(self._mask[0]))
 
     def begin(self, from_sample: int) -> int:
-        """ENCODE from ``from_sample`` (since ARM); returns the sample the board begins at."""
+        """ENCODE from ``from_sample`` (since ARM; again: the board starts over); returns the sample it begins at."""
+        self._masks = []
         self.start = int(self.lib.onboard_host_begin(self._b, int(from_sample) % 65536))
         return self.start
 

@@ -228,3 +228,19 @@ def test_a_host_catching_up_sends_only_the_speeds_the_board_can_still_use():
     enc.poll()
     enc.send_speed(20.0)  # window 10: due at sample 1050, the board has not held it
     assert board.written.endswith(speed_command(10, 20.0)) and enc.speed_windows == [8, 9, 10]
+
+
+def test_frames_of_an_earlier_encode_are_not_the_scans():
+    """ENCODE again (a pass begun again): the frames still coming from the first encoding (seq before the new
+    sample) are not the scan's; the scan's first sample is where the board began the second."""
+    board = _FakeBoard()
+    enc = OnboardEncoder(board)
+    enc.arm(np.zeros(9), np.full(9, 1000), from_sample=100)
+    board.out += _spike(100, [1] * 10) + _spike(110, [1] * 10)
+    enc.poll()
+    assert enc.first_sample == 100 and enc.samples == 20
+    enc.encode_from(300)
+    board.out += _spike(120, [1] * 10) + _spike(300, [2] * 10) + _spike(310, [4] * 10)
+    enc.poll()
+    assert enc.first_sample == 300 and enc.samples == 20
+    assert [f.seq for f in enc.spikes] == [300, 310] and enc.speeds_sent == []

@@ -62,6 +62,19 @@ def test_an_entry_not_sampled_yet_is_waited_for(rows):
     assert start == 250 and np.array_equal(got.raster, _host(rows[250:]))
 
 
+def test_an_encoding_begun_again_starts_from_the_later_entry_out_of_the_kept_samples(rows):
+    board = BoardModel()
+    board.arm(LO, HI)
+    for i, x in enumerate(rows):
+        if i == 210:
+            assert board.begin(200) == 200
+        if i == 300:  # the pass begun again: its entry 10 samples back, encoded already once
+            assert board.begin(290) == 290
+        board.tick(x, 1.5)
+    got = board.finish(10000)
+    assert got.start == 290 and got.dropped == 0 and np.array_equal(got.raster, _host(rows[290:]))
+
+
 def test_a_board_too_slow_to_catch_up_drops_and_counts(rows):
     _, got = _run(rows, 172, 200, steps=1.0)  # one sample a tick: the 28 behind stay behind, nothing lost
     assert got.dropped == 0 and got.depth_max == wire.ENC_RING_MAX_BACK + 1

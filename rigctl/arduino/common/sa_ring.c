@@ -7,6 +7,7 @@ void sa_ring_arm(sa_ring_t *r, uint8_t (*storage)[SA_RING_BYTES]) {
     r->buf = storage;
     r->head = 0;
     r->tail = 0;
+    r->old = 0;
     r->head_seq = 0;
     r->skip = 0;
     r->encoding = 0;
@@ -25,13 +26,11 @@ uint8_t sa_ring_push(sa_ring_t *r, const uint16_t x[SA_RING_TAXELS]) {
         r->skip = (uint16_t)(r->skip - 1u);
         return 1;
     }
-    if ((uint8_t)(h - r->tail) >= SA_RING_SAMPLES) {
-        if (r->encoding) {
-            r->dropped = (uint16_t)(r->dropped + 1u);
-            return 0;
-        }
-        r->tail = (uint8_t)(r->tail + 1u); /* armed: the oldest goes */
+    if (r->encoding && (uint8_t)(h - r->tail) >= SA_RING_SAMPLES) { /* it would overwrite one not yet encoded */
+        r->dropped = (uint16_t)(r->dropped + 1u);
+        return 0;
     }
+    if ((uint8_t)(h - r->old) >= SA_RING_SAMPLES) r->old = (uint8_t)(h + 1u - SA_RING_SAMPLES); /* the oldest goes */
     uint8_t *s = r->buf[SLOT(h)];
     uint8_t hi0 = 0, hi1 = 0, hi2 = 0;
     for (uint8_t i = 0; i < SA_RING_TAXELS; i++) {
@@ -46,6 +45,7 @@ uint8_t sa_ring_push(sa_ring_t *r, const uint16_t x[SA_RING_TAXELS]) {
     s[10] = hi1;
     s[11] = hi2;
     r->head = (uint8_t)(h + 1u);
+    if (!r->encoding) r->tail = r->head; /* armed: nothing waits */
     if (r->encoding) {
         uint8_t d = (uint8_t)(r->head - r->tail);
         if (d > r->depth_max) r->depth_max = d;
@@ -54,21 +54,20 @@ uint8_t sa_ring_push(sa_ring_t *r, const uint16_t x[SA_RING_TAXELS]) {
 }
 
 uint16_t sa_ring_begin(sa_ring_t *r, uint16_t from) {
-    uint8_t depth = (uint8_t)(r->head - r->tail);
+    uint8_t kept = (uint8_t)(r->head - r->old);
     uint16_t back = (uint16_t)(r->head_seq - from); /* samples from `from` to the newest, inclusive */
     r->encoding = 1;
-    r->dropped = 0;
     r->skip = 0;
-    if (back >= 0x8000u) { /* not sampled yet: discard until it comes */
+    if (back >= 0x8000u) { /* not sampled yet: discard until it comes (and the samples kept: their numbers go) */
         r->tail = r->head;
+        r->old = r->head;
         r->skip = (uint16_t)(from - r->head_seq);
-        r->depth_max = 0;
         return from;
     }
-    uint16_t limit = depth < SA_RING_MAX_BACK ? depth : SA_RING_MAX_BACK;
+    uint16_t limit = kept < SA_RING_MAX_BACK ? kept : SA_RING_MAX_BACK;
     if (back > limit) back = limit;
     r->tail = (uint8_t)(r->head - (uint8_t)back);
-    r->depth_max = (uint8_t)back;
+    if ((uint8_t)back > r->depth_max) r->depth_max = (uint8_t)back;
     return (uint16_t)(r->head_seq - back);
 }
 

@@ -5,12 +5,13 @@
  * Plain portable C99 (stdint only): the Uno encoder image runs it (its tick interrupt pushes, loop() pops), and the
  * host runs the same file through cffi (rigctl.simulation.onboard_c) to model the board; no copy of it elsewhere.
  *
- * Samples are numbered from ARM (0 = the first sample after ARM, mod 65536). While armed, a push into the full ring
- * overwrites the oldest sample: the ring holds the last SA_RING_SAMPLES. BEGIN(from) starts the encoding at sample
- * `from`: the samples before it are discarded, and the pops from then on give sample `from`, `from` + 1, ... in
- * order. A `from` older than the ring holds starts at the oldest it holds, less SA_RING_SPARE (room for the samples
- * that come while the encoder catches up: a push into a full ring while encoding is dropped and counted); a `from`
- * not sampled yet discards the samples until it comes. sa_ring_begin returns the sample the encoding starts at.
+ * Samples are numbered from ARM (0 = the first sample after ARM, mod 65536). The ring keeps the last SA_RING_SAMPLES
+ * samples, encoded or not (a push overwrites the oldest kept). BEGIN(from) starts the encoding at sample `from`: the
+ * pops from then on give sample `from`, `from` + 1, ... in order. A `from` older than the ring keeps starts at the
+ * oldest it may: SA_RING_MAX_BACK back from the newest (SA_RING_SPARE slots stay free for the samples that come while
+ * the encoder catches up: a push that would overwrite a sample not yet encoded is dropped and counted); a `from` not
+ * sampled yet discards the samples until it comes. sa_ring_begin returns the sample the encoding starts at. BEGIN
+ * again (a pass begun again, a later entry) restarts from its sample out of the kept ones.
  *
  * Storage: 10-bit samples (the ADC's) packed in SA_RING_BYTES bytes each (the low 8 bits of the 9 values, then their
  * high 2 bits in 3 bytes); a value above 1023 is stored as 1023. The storage is the caller's (the Uno shares it with
@@ -36,12 +37,13 @@ extern "C" {
 
 typedef struct {
     uint8_t (*buf)[SA_RING_BYTES];  /* SA_RING_SAMPLES slots (the caller's storage) */
-    volatile uint8_t head, tail;    /* free-running slot counters (mod 256); depth = head - tail */
+    volatile uint8_t head, tail;    /* free-running slot counters (mod 256): waiting to be encoded = head - tail */
+    volatile uint8_t old;           /* the oldest slot kept: kept = head - old (<= SA_RING_SAMPLES) */
     volatile uint16_t head_seq;     /* the number of the next sample pushed (mod 65536) */
     volatile uint16_t skip;         /* samples still to discard before the encoding's first */
-    volatile uint8_t encoding;      /* 0 armed (a full ring overwrites its oldest), 1 encoding (a full ring drops) */
-    volatile uint16_t dropped;      /* samples the full ring dropped while encoding */
-    uint8_t depth_max;              /* the deepest it was while encoding */
+    volatile uint8_t encoding;      /* 0 armed (nothing waits), 1 encoding (a ring full of waiting samples drops) */
+    volatile uint16_t dropped;      /* samples the full ring dropped while encoding (since ARM) */
+    uint8_t depth_max;              /* the deepest it was while encoding (since ARM) */
 } sa_ring_t;
 
 /* Armed on `storage` (SA_RING_SAMPLES x SA_RING_BYTES bytes): empty, the next sample is sample 0. */
