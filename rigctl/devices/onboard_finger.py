@@ -146,6 +146,7 @@ def encode_pass(enc: OnboardEncoder, board: BoardRange, motion: Callable[[], tup
         No pass within ``timeout_s``, the board sent nothing, or its counts frame did not come.
     """
     t_begin = time.monotonic()
+    motion()  # a tracker the host refuses (stamped ahead: ScanError) refuses the pass before the board is armed
     enc.arm(board.taxel_min, board.taxel_max, board.k)
     t_zero = started(now())  # the board's sample 0 on the scan's clock
     t_in = math.nan
