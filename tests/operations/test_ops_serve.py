@@ -470,12 +470,13 @@ def test_status_reads_the_monitor_not_the_controller_and_the_feed_carries_rig_ev
     control.bench.inject_faults([parse_fault("estop@0")])
     seen: list[dict] = []
 
-    def latched():
+    def latched_and_faults():  # (the monitor's state event latches the rig before its faults event is published)
         while not feed.empty():
             seen.append(feed.get_nowait())
-        return any(e["type"] == "rig" and e["kind"] == "latch" for e in seen)
+        return (any(e["type"] == "rig" and e["kind"] == "latch" for e in seen)
+                and any(e["type"] == "rig" and e["kind"] == "faults" for e in seen))
 
-    _wait(latched, 60)
+    _wait(latched_and_faults, 60)
     assert any(e["type"] == "rig" and e["kind"] == "faults" and "ESTOP" in e["message"].upper() for e in seen), seen
     assert client.get("/status").json()["rig"]["latch"]["cause"] == "estop"
 
