@@ -283,21 +283,26 @@ class _StopFlag:
 
 
 def _wait_while_paused(rig: Rig, pause_event, stop_event, on_trial, index, total, t0,
-                       tick: Callable[[], object] | None = None) -> None:
+                       tick: Callable[[], object] | None = None, halt_event=None) -> None:
     """While ``pause_event`` is set: the rig stopped and the sensor released (``paused`` is reported only then), wait
     for the start (the event cleared: Resume) or an abort; ``tick()`` runs every 50 ms meanwhile (the run writes the
-    latches and acknowledgements of the wait into its session at once)."""
+    latches and acknowledgements of the wait into its session at once). A STOP (``halt_event``) that finds the run
+    paused here has no trial to discard: cleared, and ``paused`` reported again (a Resume and a STOP within one 50 ms
+    look left a served run ``pausing`` for good, issue 76); never cleared after the wait let the run go on."""
     if pause_event is None or not pause_event.is_set():
         return
     rig.recover()  # STOP (a latched fault stays latched): no force on the sensor while paused
-    rig.wait_at_rest()
-    _emit(on_trial, TrialEvent("paused", None, index, total, elapsed_s=time.monotonic() - t0))
+    halt = halt_event if halt_event is not None else threading.Event()
     while pause_event.is_set():
-        if tick is not None:
-            tick()
-        if stop_event is not None and stop_event.is_set():
-            return
-        time.sleep(0.05)
+        halt.clear()  # the STOP that paused the run (or one while it is paused): served by this wait
+        rig.wait_at_rest()
+        _emit(on_trial, TrialEvent("paused", None, index, total, elapsed_s=time.monotonic() - t0))
+        while pause_event.is_set() and not halt.is_set():
+            if tick is not None:
+                tick()
+            if stop_event is not None and stop_event.is_set():
+                return
+            time.sleep(0.05)
     _emit(on_trial, TrialEvent("resumed", None, index, total, elapsed_s=time.monotonic() - t0))
 
 
@@ -454,11 +459,8 @@ class _Run:
                 if self._stopping():
                     summary.stopped = True
                     break
-                paused = pause_event is not None and pause_event.is_set()
                 _wait_while_paused(self.rig, pause_event, self.stop_event, self.on_trial, index, self.total,
-                                   self.t0, tick=self._flush_safety)
-                if paused and self.halt_event is not None:  # a STOP between trials: no trial to discard
-                    self.halt_event.clear()
+                                   self.t0, tick=self._flush_safety, halt_event=self.halt_event)
                 if self._stopping():
                     summary.stopped = True
                     break
@@ -618,7 +620,7 @@ class _Run:
         self._report(f"acknowledged: {latch.label}; the run stays paused until it is resumed (trial "
                      f"{planned.trial_id} is recorded again then)")
         _wait_while_paused(self.rig, self.pause_event, self.stop_event, self.on_trial, index, self.total, self.t0,
-                           tick=self._flush_safety)
+                           tick=self._flush_safety, halt_event=self.halt_event)
         if self._stopping():
             self.summary.stopped = True
             return False
@@ -699,7 +701,7 @@ class _Run:
         self._event("halted", planned, index, error="STOP: the trial was discarded; it is recorded again on resume")
         self._report(f"STOP: trial {planned.trial_id} discarded, the run is paused (resume to record it again)")
         _wait_while_paused(self.rig, self.pause_event, self.stop_event, self.on_trial, index, self.total, self.t0,
-                           tick=self._flush_safety)
+                           tick=self._flush_safety, halt_event=self.halt_event)
         return not self._stopping()
 
     def _failed_attempt(self, exc: Exception, planned: PlannedTrial, index: int, attempt: int, where: str,

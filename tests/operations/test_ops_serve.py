@@ -139,6 +139,26 @@ def test_stop_pauses_the_served_run_and_one_resume_finishes_it(served, tmp_path)
     assert rb["state"] == "done" and client.get("/status").json()["held"] is False
 
 
+def test_a_stop_right_after_a_resume_pauses_the_run(served):
+    """A resume and a STOP within the runner's 50 ms look at its pause (the attached window's Resume then STOP): the
+    runner never saw the start, so no trial event told the queue the run paused again, and the run stayed
+    `pausing` for good (the attached window's STOP test in 2 of 3 CI runs). The paused runner serves the STOP and
+    says so: the run is `paused`, the queue held, and one resume finishes it."""
+    client, q = served
+    a = client.post("/runs", json={"toml": PROTOCOL.format(n=2), "out": "a.h5"}).json()["id"]
+    _wait(lambda: q.get(a).trials_done >= 1)
+    q.pause(a)
+    _wait(lambda: q.get(a).state == "paused")
+    for _ in range(3):  # each time: both before the runner's next look (it sleeps 50 ms between looks)
+        q.resume(a)
+        q.stop()
+        _wait(lambda: q.get(a).state not in ("running", "pausing"), timeout_s=20)
+        assert q.get(a).state == "paused" and q.held, q.get(a)
+    assert client.post(f"/runs/{a}/resume", json={}).json()["state"] == "running"
+    ra = _wait(lambda: (r := client.get(f"/runs/{a}").json())["state"] in ("done", "failed", "stopped") and r)
+    assert ra["state"] == "done" and ra["trials_done"] == ra["trials_total"] == 4, ra
+
+
 def test_a_run_cut_by_a_crash_waits_for_its_session_lock_then_resumes(tmp_path):
     """A killed server's journal helper may still hold the session's writer lock when the server restarts: the
     resumed run waits for it instead of failing."""
