@@ -11,6 +11,7 @@ sent, ``DrumError`` / ``DrumTimeout`` / ``DrumFault`` from the controller).
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
 import os
@@ -29,7 +30,7 @@ from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
 from rigctl.operations._drum_view import DrumView
 from rigctl.operations._monitor import RigEvent, RigMonitor
-from rigctl.operations._rules import Event, Refused, SafetyState, decide
+from rigctl.operations._rules import Event, Refused, SafetyState, Transition, decide
 from rigctl.operations._setpoints import SetpointRefusal, setpoint_refusals
 from rigctl.operations._source import RigSource
 from rigctl.rigs import open_rig
@@ -115,6 +116,9 @@ def open_control(source: RigSource | None = None, *, home: Home | str = Home.ALW
     if not control.has_drum:  # the handheld rig: no actuator, no latch of a controller
         return control
     try:
+        # the table's open: the rig as the controller left it, read and left so (nothing moves); refused only for
+        # a face that holds it already, which the ports' own locks refused before this
+        control._decide(Event.OPEN, dataclasses.replace(control.safety_state(), link=False))
         if acknowledge is not None and control.latch is not None:  # found at open: the operator's acknowledgement,
             # given with the command; it moves nothing either (the first start HOMEs)
             rig.acknowledged_at_open = control.acknowledge(acknowledge[0], by=acknowledge[1])
@@ -157,6 +161,9 @@ class RigControl:
         self.active_run: _Run | None = None
         #: the one lock the table's decisions for this rig are taken under (:meth:`start_allowed`)
         self._rules_lock = threading.RLock()
+        #: the table's last transition on this rig (:mod:`rigctl.operations._rules`: an open, a close, an
+        #: acknowledgement, a STOP; starts are asked, :meth:`start_allowed`), or None
+        self.last_transition: Transition | None = None
 
     @property
     def monitor(self) -> RigMonitor:
@@ -209,11 +216,11 @@ class RigControl:
         return lambda: self._stop_listeners.remove(fn) if fn in self._stop_listeners else None
 
     # ------------------------------------------------------------------------------------------------- the rules
-    def safety_state(self) -> SafetyState:
+    def safety_state(self, status: DrumStatus | None = None) -> SafetyState:
         """The host's state of this rig for the safety table (:mod:`rigctl.operations._rules`), from the truth: a
-        face holds it (this object is open), the latch held, the e-stop's input as the monitor last read it, the run
-        on it (:attr:`active_run`'s state)."""
-        st = self._monitor.latest if self._monitor is not None else None
+        face holds it (this object is open), the latch held, the e-stop's input as ``status`` says (default: as the
+        monitor last read it), the run on it (:attr:`active_run`'s state)."""
+        st = status if status is not None else (self._monitor.latest if self._monitor is not None else None)
         run = self.active_run
         state = getattr(run, "state", "none") if run is not None else "none"
         return SafetyState(link=True, latch=self.latch is not None,
@@ -232,6 +239,14 @@ class RigControl:
                 if latch is not None:
                     raise LatchedFault(latch, f"{what} refused") from None
                 raise
+
+    def _decide(self, event: Event, state: SafetyState | None = None) -> Transition:
+        """The table's transition for ``event`` in ``state`` (default: :meth:`safety_state`), under the rules lock
+        (its caller holds it while it acts); kept in :attr:`last_transition`. Refused."""
+        with self._rules_lock:
+            t = decide(state if state is not None else self.safety_state(), event)
+            self.last_transition = t
+            return t
 
     # ------------------------------------------------------------------------------------------------- parts
     @property
@@ -314,10 +329,16 @@ class RigControl:
 
     # ------------------------------------------------------------------------------------------------- life
     def close(self) -> None:
-        """Stop the monitor, stop the rig safely and close it (never raises a device error)."""
-        if self._monitor is not None:
-            self._monitor.close()
-        self._rig.close()
+        """The table's close (:mod:`rigctl.operations._rules`: never refused while open): stop the monitor, stop the
+        rig safely and close it (never raises a device error)."""
+        with self._rules_lock:
+            try:
+                self._decide(Event.CLOSE)
+            except Refused:  # (closed already: closing again does what it did)
+                pass
+            if self._monitor is not None:
+                self._monitor.close()
+            self._rig.close()
 
     def __enter__(self) -> "RigControl":
         return self
@@ -386,13 +407,35 @@ class RigControl:
 
         Returns the :class:`rigctl.acquisition.safety.Acknowledgement`. Raises ValueError (nothing latched, an empty
         reason), :class:`rigctl.acquisition.safety.LatchedFault` (the condition persists: e.g. the e-stop is still
-        pressed; the latch stays), DrumError."""
-        return self._rig.acknowledge(reason, by=by)
+        pressed; the latch stays), DrumError.
+
+        The table decides (:mod:`rigctl.operations._rules`, event ``acknowledge``) on the controller's status read
+        now (the e-stop's contact as it is, not as the last poll saw it): nothing latched is a ValueError, any other
+        refusal a LatchedFault naming why; the acknowledgement itself runs under the table's lock."""
+        if not self.has_drum:  # the handheld rig: no controller, its own latch
+            return self._rig.acknowledge(reason, by=by)
+        with self._rules_lock:
+            st = self._rig.drum.read_status()
+            if self.latch is None:  # a fault the controller latched while nobody asked the rig to move
+                self._rig.latch_unsafe(st, "status check")
+            try:
+                self._decide(Event.ACKNOWLEDGE, self.safety_state(st))
+            except Refused as exc:
+                latch = self.latch
+                if latch is None:
+                    raise ValueError("nothing is latched: no fault to acknowledge") from None
+                raise LatchedFault(latch, exc.why) from None
+            return self._rig.acknowledge(reason, by=by)
 
     # ------------------------------------------------------------------------------------------------- commands
     def stop(self, reason: str = "STOP") -> bool:
         """STOP (drum to rest, actuator home) for ``reason`` (the operator's STOP, the dead man's switch); the
-        :meth:`on_stop` listeners hear it first. Never raises. True when the controller acknowledged it."""
+        :meth:`on_stop` listeners hear it first. Never raises. True when the controller acknowledged it. The table's
+        STOP (:mod:`rigctl.operations._rules`: never refused); not under its lock (a STOP waits for nothing)."""
+        try:
+            self.last_transition = decide(self.safety_state(), Event.STOP)
+        except Exception:  # noqa: BLE001 - the STOP itself must go out
+            log.exception("the safety table's STOP failed")
         for fn in list(self._stop_listeners):
             try:
                 fn(reason)

@@ -195,3 +195,42 @@ def test_rigctl_safety_table_is_docs_safety_md_verbatim():
     doc = (Path(__file__).parents[2] / "docs" / "safety.md").read_text()
     assert r.output in doc, "docs/safety.md does not hold `rigctl safety table` verbatim"
     assert re.search(r"\| open \| no face holds the rig \|", doc)
+
+
+def test_the_rig_owner_opens_acknowledges_stops_and_closes_through_the_table(tmp_path, monkeypatch):
+    """The faces' one owner (RigControl) asks the table for every open, STOP, acknowledgement and close, not only
+    for starts: each goes through rigctl.operations._rules.decide, and a table that refuses an acknowledgement (a
+    mutated row) refuses the owner's, naming the table's reason, the latch kept."""
+    import rigctl.operations._control as control_module
+    from rigctl.acquisition.safety import Latch, LatchedFault
+    from rigctl.operations import RigSource, open_control
+
+    seen: list[SafetyEvent] = []
+    real = control_module.decide
+
+    def spy(state, event, *args):
+        seen.append(SafetyEvent(event))
+        return real(state, event, *args)
+
+    monkeypatch.setattr(control_module, "decide", spy)
+    control = open_control(RigSource("inprocess"), seed=1, host_config_path=tmp_path / "rig.json",
+                           home="unless_faulted")
+    try:
+        assert seen == [SafetyEvent.OPEN] and control.last_transition.event is SafetyEvent.OPEN
+        assert control.stop() and seen[-1] is SafetyEvent.STOP
+        control.keep_latch(Latch("reset", "pytest: a reset another face saw"))
+        row = TRANSITIONS[SafetyEvent.ACKNOWLEDGE]
+        TRANSITIONS[SafetyEvent.ACKNOWLEDGE] = (lambda s: "a mutated row refuses every acknowledgement", *row[1:])
+        try:
+            with pytest.raises(LatchedFault, match="mutated row"):
+                control.acknowledge("checked", by="pytest")
+        finally:
+            TRANSITIONS[SafetyEvent.ACKNOWLEDGE] = row
+        assert control.latch is not None and seen[-1] is SafetyEvent.ACKNOWLEDGE
+        control.acknowledge("checked", by="pytest")
+        assert control.latch is None and control.last_transition.after.latch is False
+        with pytest.raises(ValueError, match="nothing is latched"):
+            control.acknowledge("again", by="pytest")
+    finally:
+        control.close()
+    assert seen[-1] is SafetyEvent.CLOSE
