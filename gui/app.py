@@ -109,9 +109,6 @@ def open_rig_keeping_faults(source: RigSource, host_config_path: str | None = No
 #: the rigs a STOP reaches, by name (the window's own, and the attached ``rigctl serve``'s)
 LOCAL_RIG = "this PC's rig"
 SERVER_RIG = "the server's rig"
-#: after an acknowledgement, the controller's fault bits still seen this long (its status poll's lag) open no new
-#: fault dialog, s
-ACK_SETTLE_S = 2.0
 #: how long STOP is sent again to an attached server that has not answered, s (each try waits the client's timeout)
 SERVER_STOP_WAIT_S = 30.0
 
@@ -148,7 +145,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.rig_events: RigEvents | None = None  # the subscription and the GUI thread's heartbeat
         self.fault_dialog: Any = None  # the latched-fault dialog (rigctl_gui.fault_dialog), while one is open
         self._latch_seen: Any = None  # the latch the dialog was last opened for (opened once per latch)
-        self._acknowledged_at = -1e9  # when the fault dialog's acknowledgement was last taken (time.monotonic)
         self.commands: CommandExecutor | None = None
         self.encoder: LiveEncoder | None = None
         #: what the Live view shows once built (taxels, encoder, layout, the ring's frame count when connected: its
@@ -1008,23 +1004,17 @@ class MainWindow(QtWidgets.QMainWindow):
             self.statusBar().showMessage(text, 15000)
 
     def _latch_key(self) -> Any:
-        """What is latched now (the library's latch, else the controller's fault bits), or None."""
+        """What is latched now: the library's latch (the safety table's state; the rig's monitor latches every
+        controller fault it reads), or None. The window derives no latch of its own (issue 76: it merged the
+        controller's fault bits in and debounced them for 2 s after an acknowledgement)."""
         h = self.handle
-        if h is None:
-            return None
-        latch = h.control.latch
-        if latch is not None:
-            return latch
-        return self._faults or None
+        return None if h is None else h.control.latch
 
     def _check_latch(self) -> None:
         """A new latched fault opens the fault dialog (once per latch: Later closes it, Rig > Acknowledge fault...
         opens it again); an open dialog follows the controller's status (the e-stop's contact)."""
         key = self._latch_key()
-        # (just acknowledged: the controller's fault bits the acknowledgement clears are seen for a poll or two more,
-        # never a new latch to open the dialog for)
-        settling = isinstance(key, int) and time.monotonic() - self._acknowledged_at < ACK_SETTLE_S
-        if key is not None and key != self._latch_seen and not settling:
+        if key is not None and key != self._latch_seen:
             self._latch_seen = key
             self.open_fault_dialog()
         elif key is None:
@@ -1046,7 +1036,6 @@ class MainWindow(QtWidgets.QMainWindow):
             self.fault_dialog.raise_()
             return self.fault_dialog
         dlg = self.fault_dialog = FaultDialog(self.handle.control, self._faults, self, log=self.events.add)
-        dlg.acknowledged.connect(lambda *_: setattr(self, "_acknowledged_at", time.monotonic()))
         dlg.destroyed.connect(lambda *_: setattr(self, "fault_dialog", None))  # deleted when closed
         if self.poller is not None and self.poller.ok:
             dlg.update_from(self.poller.latest)

@@ -32,30 +32,23 @@ from rigctl_gui.colours import on_window
 __all__ = ["FaultDialog", "latch_of", "latches_of"]
 
 
-def latches_of(control: Any, faults: int) -> list[tuple[str, str, str]]:
+def latches_of(control: Any, faults: int = 0) -> list[tuple[str, str, str]]:
     """Everything latched on ``control`` (a :class:`rigctl.operations.RigControl`), each as ``(label, detail, what to
-    do)``: the library's latch (:attr:`rigctl.operations.RigControl.latch`) when it holds one, then every controller
-    fault bit of ``faults`` it does not already name (two faults at once are both shown); ``[]`` when nothing is
-    latched."""
-    from rigctl.core.drum import FAULT_WORDS, Fault
+    do)``: the library's latch (:attr:`rigctl.operations.RigControl.latch`: the safety table's state, which the
+    rig's monitor latches from every controller fault it reads), one entry a cause (two faults at once are both
+    shown); ``[]`` when nothing is latched. The GUI derives no latch of its own (issue 76): the controller's fault
+    bits (``faults``, kept for the callers) are not merged in."""
+    del faults
+    latch = getattr(control, "latch", None)
+    if latch is None:
+        return []
+    from rigctl.acquisition.safety import CAUSES
 
     out: list[tuple[str, str, str]] = []
-    named = 0
-    latch = getattr(control, "latch", None)
-    if latch is not None:
-        from rigctl.acquisition.safety import CAUSES
-
-        causes = tuple(getattr(latch, "causes", (latch.cause,)))  # (two faults at once: the library names both)
-        for i, cause in enumerate(causes):
-            label, todo = CAUSES.get(cause, (cause, ""))
-            out.append((str(label), str(latch.detail) if i == 0 else "", str(todo)))
-        named = int(getattr(latch, "faults", 0) or 0)
-    for bit in Fault:
-        if int(faults) & int(bit) and not named & int(bit) and bit in FAULT_WORDS:
-            w = FAULT_WORDS[bit]
-            if latch is not None and any(w.label == o[0] for o in out):
-                continue
-            out.append((w.label, w.meaning[:1].upper() + w.meaning[1:] + ".", w.advice))
+    causes = tuple(getattr(latch, "causes", (latch.cause,)))  # (two faults at once: the library names both)
+    for i, cause in enumerate(causes):
+        label, todo = CAUSES.get(cause, (cause, ""))
+        out.append((str(label), str(latch.detail) if i == 0 else "", str(todo)))
     return out
 
 
@@ -182,7 +175,8 @@ class FaultDialog(QtWidgets.QDialog):
                                "release the e-stop and give a reason first" if pressed else "give a reason first")
 
     def acknowledge(self) -> None:
-        """OK: the library's acknowledgement with the reason, in a worker thread (it homes the actuator)."""
+        """OK: the library's acknowledgement with the reason, in a worker thread (it moves nothing: the start is
+        separate, docs/safety.md)."""
         reason = self.reason.text().strip()
         if not reason or self.busy:
             return

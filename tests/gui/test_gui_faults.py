@@ -148,9 +148,15 @@ def test_a_dialog_whose_latch_is_gone_says_so(inprocess_window, qapp):
 
 
 def test_two_faults_latched_at_once_are_both_named(qapp):
-    from rigctl_gui.fault_dialog import FaultDialog
+    """Both faults the controller latched are named, from the library's latch (the safety table's state, which the
+    rig's monitor latches from the controller's fault bits: rigctl.acquisition.safety.latch_from_faults); the
+    dialog merges no fault bits of its own in (issue 76)."""
+    from rigctl.acquisition.safety import latch_from_faults
+    from rigctl_gui.fault_dialog import FaultDialog, latches_of
 
-    control = SimpleNamespace(latch=Latch("estop", "the e-stop input opened", int(Fault.ESTOP)))
+    control = SimpleNamespace(latch=latch_from_faults(int(Fault.ESTOP | Fault.FORCE_LIMIT)))
+    one = SimpleNamespace(latch=Latch("estop", "the e-stop input opened", int(Fault.ESTOP)))
+    assert [label for label, _d, _t in latches_of(one, int(Fault.ESTOP | Fault.FORCE_LIMIT))] == ["e-stop"]
     st = DrumStatus(force_g=512.0, speed_mm_s=0.0, speed_target_mm_s=0.0, angle_deg=0.0, revolutions=0,
                     actuator_mm=3.1, state=DrumState.FAULT, faults=Fault.ESTOP | Fault.FORCE_LIMIT, firmware=(1, 0),
                     heartbeat=0, loadcell_raw=0, force_setpoint_active_g=0.0, flags=StatusFlag.ESTOP_OPEN)
@@ -160,8 +166,8 @@ def test_two_faults_latched_at_once_are_both_named(qapp):
         title = dlg.title.text()
         assert "2 at once" in title and "e-stop" in title and "force limit exceeded" in title, title
         assert "FORCE_LIMIT" in dlg.detail.text() and "e-stop" in dlg.detail.text()
-        assert dlg.rig_now.text() == ("FAULT (e-stop) - drum stopped, drivers off, actuator where it stopped, "
-                                      "pressing 512 g")
+        assert dlg.rig_now.text() == ("FAULT (e-stop and force limit exceeded) - drum stopped, drivers off, "
+                                      "actuator where it stopped, pressing 512 g")
         # the library's own latch of two causes (Latch.also) names both, each with what to do
         both = Latch("estop", "the e-stop input opened", int(Fault.ESTOP), also=("stall",))
         dlg2 = FaultDialog(SimpleNamespace(latch=both), int(Fault.ESTOP))
