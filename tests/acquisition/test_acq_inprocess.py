@@ -161,6 +161,29 @@ def test_an_unexpected_reset_latches_and_the_acknowledgement_rehomes_and_retares
     assert abs(rig.backend.model.force_g - pressed_g) < 30  # the same true force as before the reset, not twice it
 
 
+def test_a_reset_between_the_open_and_the_first_home_is_latched_not_homed_over(rig):
+    """The controller resets after the rig read it at open and before its first start's HOME (the outlives-face
+    machine's `plan --ack` face, 2 of 5 runs: HOME took the new boot count for the rig's own, the reset was forgotten,
+    and the start homed and pressed 0.66-1.29 mm towards the sensor after a reset nobody acknowledged): the start is
+    refused as a reset, nothing moves (no HOME, no press), and it stays refused until acknowledged."""
+    from rigctl.acquisition.safety import LatchedFault
+    from rigctl.devices.wire import ResetCause
+
+    ctl, model = rig.backend.controller, rig.backend.model
+    assert rig.home_pending and not rig.homed_once  # opened: nothing moved, the first start HOMEs
+    ctl.reset(ResetCause.EXTERNAL)
+    act0, steps0 = model.actuator_mm, model.stepper_travel_mm
+    with pytest.raises(LatchedFault, match="reset"):
+        rig.press(300)
+    assert rig.safety.latch.cause == "reset" and rig.drum_resets == 1
+    with pytest.raises(LatchedFault, match="refused"):
+        rig.press(300)
+    assert model.actuator_mm == act0 and model.stepper_travel_mm == steps0 and rig.drum.read_status().state.name \
+        == "NOT_HOMED"  # no HOME, no press
+    rig.acknowledge("reset checked", by="pytest")
+    rig.press(300)  # the start after the acknowledgement homes and presses
+
+
 def test_bad_eeprom_and_a_calibration_mismatch_are_warned_on_open(tmp_path):
     """Opening a rig whose controller runs on default calibration (blank or bad EEPROM), with a rig config whose
     load-cell calibration differs from the controller's scale: both are warned about, by name."""

@@ -73,6 +73,9 @@ ADVANCE_MM, RISE_G, TURNING_MM_S = 0.02, 10.0, 1.0
 #: an opening moves nothing: the actuator's excursion either way within this (mm; a HOME at open backs a stranded
 #: actuator off; the window begins SETTLE_S["open"] after the face is started, an earlier face's back-off done)
 OPEN_MOVED_MM = 0.005
+#: a reset while a face is open: injected no earlier than this long after the face first wrote to the drum link (its
+#: open reads the controller's boot count then), s of wall time
+OPEN_READ_S = 1.0
 
 TOML = """name = "outlives"
 description = "3 short trials"
@@ -118,6 +121,7 @@ class Face:
     def __init__(self, kind: str, proc: subprocess.Popen, url: str | None = None):
         self.kind, self.proc, self.url = kind, proc, url
         self.run_id: str | None = None
+        self.started_ns = time.monotonic_ns()  # (the clock file's stamps are time.monotonic, one clock a machine)
 
     def alive(self) -> bool:
         return self.proc.poll() is None
@@ -359,9 +363,31 @@ class OutlivesFace(RuleBasedStateMachine):
         self.latches.append(Latch("estop", self._wall_of(pressed)))
         self.releases.append(self._wall_of(pressed + hold_s))
 
+    def _face_has_read_the_controller(self) -> bool:
+        """Wait until the face has opened the rig: it wrote to the drum link after it started (the rig's clock file:
+        rigctl.core.port_clock, the faces' drum write stamp), then :data:`OPEN_READ_S` more for its open to read the
+        controller (its boot count). False when the face ended first. A reset before that is one the face cannot
+        have seen (a process still importing, at load ~15 for up to 8 s: 2 of 5 runs reset the controller at rest
+        before `plan --ack` opened it, and judged its own start's HOME and press as motion after that reset)."""
+        import struct
+
+        face = self.face
+        deadline = time.monotonic() + HANG_S
+        while face is not None and face.alive() and time.monotonic() < deadline:
+            with open(Path(self.sim.dir) / ".clock", "rb") as f:
+                head = f.read(40)
+            if len(head) == 40 and struct.unpack_from("<Q", head, 32)[0] > face.started_ns:
+                time.sleep(OPEN_READ_S)
+                return face.alive()
+            time.sleep(0.05)
+        return False
+
     @precondition(lambda self: self.face is not None and self.face.alive() and not self._open("reset"))
     @rule()
     def reset(self):
+        if not self._face_has_read_the_controller():
+            self._note("controller reset skipped: the face ended before it opened the rig")
+            return
         r = self.sim.inject("reset@0")
         assert r.returncode == 0, r
         at = float(r.stdout.split("starts at ")[1].split(" ")[0])
