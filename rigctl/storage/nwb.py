@@ -11,7 +11,8 @@
 - ``acquisition/load_cell_force`` (g) and ``acquisition/drum_speed`` (mm/s): the drum controller's traces (a
   handheld session: ``acquisition/tracker_velocity`` (mm/s) and ``acquisition/tracker_position`` (mm along the
   plate), the tracker's samples) with
-  timestamps on the same session time;
+  timestamps on the same session time (a trace whose times are regular within 1 ns, as a simulated session's 50 Hz
+  traces are, with NWB's ``starting_time`` and ``rate`` instead, the same times: nwbinspector's advice);
 - the **trials table**: one row per recorded trial (start/stop time in session time; ``trial_id``, ``texture``,
   ``group``, ``speed_mm_s`` and ``force_g`` setpoints, ``profile``, ``duration_s``, ``status``, ``n_samples``,
   ``dropped_frames``, ``crc_errors``, ``started_utc``, measured ``force_mean_g`` and ``speed_mean_mm_s``);
@@ -505,8 +506,24 @@ def _add_traces(nwb: Any, s: Any, tl: _Timeline, bar: Stage) -> None:
         if not np.all(ts[1:] >= ts[:-1]):  # trials' traces that overlap (sorted already: the stable order is theirs)
             order = np.argsort(ts, kind="stable")
             ts, vs = ts[order], vs[order]
-        nwb.add_acquisition(TimeSeries(name=name, data=vs, timestamps=ts, unit=unit,
+        rate = _regular_rate(ts)
+        when: dict[str, Any] = ({"timestamps": ts} if rate is None else  # regular: NWB's rate (nwbinspector asks it)
+                                {"starting_time": float(ts[0]), "rate": rate})
+        nwb.add_acquisition(TimeSeries(name=name, data=vs, unit=unit, **when,
                                        description=f"{what} of each trial, on the taxels' session time"))
+
+
+def _regular_rate(t: np.ndarray, tolerance_s: float = 1e-9) -> float | None:
+    """The rate (Hz) of times ``t`` (s, (n,)) that are ``t[0] + i / rate`` within ``tolerance_s`` each (so stored
+    with NWB's ``starting_time`` and ``rate`` they are the same times), or None (fewer than 3, or not regular: gaps
+    between trials, a clock's jitter)."""
+    t = np.asarray(t, np.float64)
+    if t.size < 3:
+        return None
+    step = (t[-1] - t[0]) / (t.size - 1)
+    if not step > 0 or np.max(np.abs(t[0] + np.arange(t.size) * step - t)) > tolerance_s:
+        return None
+    return float(1.0 / step)
 
 
 def _add_trials_table(nwb: Any, s: Any, tl: _Timeline) -> None:

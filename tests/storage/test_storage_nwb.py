@@ -109,7 +109,11 @@ def test_the_nwb_file_holds_the_sensor_trials_and_traces(recorded, tmp_path):
             assert abs(row["force_mean_g"] - p["force_g"]) < 30  # the load-cell trace went in
         force = nwb.acquisition["load_cell_force"]
         n_force = sum(s.trial(t).force_g.size for t in s.completed_ids())
-        assert force.unit == "g" and len(force.data) == n_force and np.all(np.diff(force.timestamps[()]) >= 0)
+        times = force.timestamps[()] if force.timestamps is not None else \
+            force.starting_time + np.arange(len(force.data)) / force.rate
+        assert force.unit == "g" and len(force.data) == n_force and np.all(np.diff(times) >= 0)
+        traces = np.concatenate([d.force_time_s for d in (s.trial(t) for t in s.completed_ids())])
+        assert times.size == traces.size
         assert len(nwb.processing["misc"]["plan"]) == len(s.plan)
 
 
@@ -271,7 +275,13 @@ def test_the_block_export_writes_what_the_per_trial_export_wrote(dataset, tmp_pa
         np.testing.assert_array_equal(f["acquisition/taxels/data"][()], np.concatenate([t.taxels for t in trials]))
         force_t = np.concatenate([lead + st + t.force_time_s for st, t in zip(starts, trials)])
         order = np.argsort(force_t, kind="stable")
-        np.testing.assert_array_equal(f["acquisition/load_cell_force/timestamps"][()], force_t[order])
+        g_force = f["acquisition/load_cell_force"]
+        if "timestamps" in g_force:
+            np.testing.assert_array_equal(g_force["timestamps"][()], force_t[order])
+        else:  # regular (issue 79 item 7): starting_time and rate, the same times within 1 ns
+            rate = g_force["starting_time"].attrs["rate"]
+            times = g_force["starting_time"][()] + np.arange(force_t.size) / rate
+            np.testing.assert_allclose(times, force_t[order], rtol=0, atol=1e-9)
         np.testing.assert_array_equal(f["acquisition/load_cell_force/data"][()],
                                       np.concatenate([t.force_g for t in trials])[order])
 
@@ -368,3 +378,28 @@ def test_the_command_sets_experimenter_institution_and_lab(recorded, tmp_path):
     with NWBHDF5IO(str(plain), "r") as io:
         nwb = io.read()
         assert nwb.experimenter is None and nwb.institution is None and nwb.lab is None
+
+
+def test_regular_traces_are_stored_with_a_rate(dataset, tmp_path):
+    """A trace whose times are regular (a simulated session's 50 Hz traces, trials back to back) is stored with NWB's
+    starting_time and rate, the same times within 1 ns, and nwbinspector no longer asks for it (issue 79 item 7); an
+    irregular one keeps its timestamps."""
+    from pynwb import NWBHDF5IO
+
+    from rigctl.storage.nwb import _regular_rate
+
+    out = tmp_path / "ds.nwb"
+    export_nwb(dataset[0], out)
+    _, messages = _inspect(out)
+    assert not [m for m in messages if m.check_function_name == "check_regular_timestamps"], messages
+    with NWBHDF5IO(str(out), "r") as io:
+        nwb = io.read()
+        rates = {name: nwb.acquisition[name].rate for name in ("load_cell_force", "drum_speed")}
+    assert any(r is not None for r in rates.values()), rates
+    t = 0.5 + np.arange(100) / 50.0
+    assert _regular_rate(t) == pytest.approx(50.0)
+    assert np.max(np.abs(t[0] + np.arange(100) / _regular_rate(t) - t)) < 1e-9
+    jitter = t.copy()
+    jitter[40] += 1e-6
+    assert _regular_rate(jitter) is None and _regular_rate(t[:2]) is None
+    assert _regular_rate(np.concatenate([t, t[-1] + 1.0 + np.arange(10) / 50.0])) is None  # a gap
