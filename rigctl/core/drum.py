@@ -32,7 +32,7 @@ from typing import NamedTuple, Protocol, runtime_checkable
 __all__ = [
     "DrumState", "Fault", "SpeedProfile", "ResetCause", "StatusFlag", "DrumStatus", "DrumLimits", "SettleBand", "ForceLoopConfig",
     "SetpointRange",
-    "MAX_SPEED_MM_S", "MAX_FORCE_G", "PROTOCOL_LIMITS",
+    "MAX_SPEED_MM_S", "MAX_FORCE_G", "PROTOCOL_LIMITS", "CONTACT_STIFFNESS_MAX_G_PER_MM",
     "DRUM_DIAMETER_MM", "DRUM_STEPS_PER_REV", "DRUM_MICROSTEPS", "DRUM_CIRCUMFERENCE_MM", "DRUM_SPEED_TOLERANCE",
     "DRUM_MARKS_PER_REV", "DRUM_SLIP_TOLERANCE",
     "STATE_TEXT", "FAULT_WORDS", "ACTUATOR_DIRECTION_CAUSES", "CRUSH_FAULTS", "CRUSH_NOTE",
@@ -40,6 +40,14 @@ __all__ = [
     "PRESSING_G", "HOME_TOLERANCE_MM", "actuator_words", "status_line",
     "DrumError", "DrumTimeout", "DrumWaitAborted", "DrumFault", "DrumReset", "SetpointRangeError", "Clock",
 ]
+
+#: the stiffest contact (sensor pad + mount + plate, g per mm of actuator travel) a rig config accepts: the rig as
+#: built's mount (docs/hardware/wiring.md, "Sensor mount"). A precondition, not a measurement: the drum's runout
+#: (0.02 mm) against it is 100 g, what 1.1 x FORCE_LIMIT leaves above the driver's stall (1,550 g), and the contact
+#: probe's speed is derived from it (the header's RIGCTL_PROBE_BLIND_G / this: rigctl.devices.wire.PROBE_TRAVEL_UM).
+#: Plates stiffer than this are refused by the rig config and the fault injector (issue 75: a 55,430 g/mm plate
+#: swapped in reached 2,025 g with the stall on, the runout alone adding ~1,100 g)
+CONTACT_STIFFNESS_MAX_G_PER_MM = 5000.0
 
 
 # ----------------------------------------------------------------------------------------------------------------

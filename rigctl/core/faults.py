@@ -53,7 +53,7 @@ FAULTS: dict[str, str] = {
     "hx711-frozen": "the HX711's output freezes at its raw value at T (the same 24 bits every conversion, at its "
                     "rate) until T+D",
     "contact-stiffness": "contact-stiffness=G_PER_MM: the plate is swapped at T for one whose contact stiffness is "
-                         "G_PER_MM g/mm (the rig's own again at T+D)",
+                         "G_PER_MM g/mm (1 to 5000, the stiffest a rig config accepts; the rig's own again at T+D)",
     "eeprom-corrupt": "the drum controller browns out at T while writing its EEPROM: the stored calibration fails "
                       "its checksum and the controller resets (with @0: corrupt from power-on); D is not used",
     "home-switch": "home-switch=closed|open: the actuator's home switch reads closed wherever the actuator is (its "
@@ -87,7 +87,7 @@ PERCENT_FAULTS = frozenset({"slip", "coupling-slip", "steps-lost"})
 WORD_VALUES: dict[str, dict[str, float]] = {"home-switch": {"open": 0.0, "closed": 1.0}}
 #: the range of each valued fault's value (the others: 0 to 1e9): a contact stiffness in g/mm must be > 0
 VALUE_RANGES: dict[str, tuple[float, float]] = {
-    "slip": (0.0, 100.0), "contact-stiffness": (1.0, 1e5), "coupling-slip": (0.0, 100.0), "steps-lost": (0.0, 100.0),
+    "slip": (0.0, 100.0), "contact-stiffness": (1.0, 5000.0), "coupling-slip": (0.0, 100.0), "steps-lost": (0.0, 100.0),
     "cell-gain": (0.3, 3.0), "cell-offset": (-5000.0, 5000.0), "hx711-dout-noise": (0.0, 1.0),
     "calibration-scale": (0.3, 3.0), "home-switch": (0.0, 1.0)}
 
@@ -139,7 +139,7 @@ def _seconds(text: str, what: str, spec: str) -> float:
 
 def parse_fault(spec: str) -> FaultSpec:
     """Parse ``FAULT[=VALUE]@T[+D]`` (e.g. ``estop@3+2``, ``taxel-ohm=47000@0``, ``slip=20%@5+2``, ``reset@5``,
-    ``contact-stiffness=6000@4``, ``hx711-frozen@2``, ``eeprom-corrupt@0``).
+    ``contact-stiffness=5000@4``, ``hx711-frozen@2``, ``eeprom-corrupt@0``).
 
     Raises FaultSpecError (a ValueError) naming what is wrong: the form, an unknown fault (with the known ones), a
     missing or unexpected value, a time that is not a number of seconds in 0..1e6."""

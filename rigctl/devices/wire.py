@@ -18,6 +18,7 @@ import numpy as np
 # the controller's states, fault bits and speed profiles are shared by every layer: they live in rigctl.core.drum
 # (the numbers of spec tables 2.4 and 2.5, checked here by tests/test_wire_spec.py); re-exported as the spec's names
 from rigctl.core.drum import (
+    CONTACT_STIFFNESS_MAX_G_PER_MM as CONTACT_STIFFNESS_MAX_G_PER_MM,
     DrumState as DrumState,
     Fault as Fault,
     ResetCause as ResetCause,
@@ -356,7 +357,11 @@ FORCE_LEAD_PERIODS = 3
 #: the contact probe of the first press after a reset: contact at this force, g; approach speed: this travel, um,
 #: per FORCE_LEAD_PERIODS; the measuring step, um
 PROBE_CONTACT_G = 50
-PROBE_TRAVEL_UM = 100
+#: the force the probe's approach may add at the stiffest contact a rig config accepts
+#: (rigctl.core.drum.CONTACT_STIFFNESS_MAX_G_PER_MM) before a reading can show it, g: the approach's travel per
+#: FORCE_LEAD_PERIODS is derived from both (issue 75)
+PROBE_BLIND_G = 500
+PROBE_TRAVEL_UM = int(PROBE_BLIND_G * 1000 // CONTACT_STIFFNESS_MAX_G_PER_MM)
 PROBE_STEP_UM = 20
 #: the contact travel :func:`probe_time_s` allows for, mm (the simulated rigs' gap is 3 mm)
 PROBE_ALLOWANCE_TRAVEL_MM = 5.0

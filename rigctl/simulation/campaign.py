@@ -5,8 +5,8 @@ A case (:class:`Case`, :func:`draw_case`) is one seed's draw: one fault of :data
 value for the valued ones: a plate swap's stiffness, a slip, a taxel impedance), the moment of the run it starts in
 (:data:`MOMENTS`: wired so from power-on, or during the HOME, the first press's contact probe, a later press's
 approach, the settled force, a running trial, the retract, the pause between trials) and where in that moment
-(``moment_fraction``), how long it lasts, the rig's contact stiffness (0.25-6 kg/mm, log-uniform), its HX711's
-rate (10 or 80 SPS) and the trials' forces (250-1500 g). The same seed draws the same case on every machine
+(``moment_fraction``), how long it lasts, the rig's contact stiffness (0.25-5 kg/mm, log-uniform: the whole range a
+rig config accepts), its HX711's rate (10 or 80 SPS) and the trials' forces (250-1500 g). The same seed draws the same case on every machine
 (numpy's PCG64), so a violation is replayed from its seed.
 
 The invariants (:func:`check_invariants`) are judged on the truth log's columns :data:`COLUMNS` (of
@@ -54,10 +54,10 @@ CONTACT_G = 5.0
 LATCH_STEP_MM = 0.01
 #: the truth rows within this long after the latch are not judged, s (the latch's own control period)
 LATCH_GRACE_S = 0.005
-#: the range of each valued fault's drawn value (contact-stiffness: the plate swapped for one of 0.1-100 kg/mm, the
-#: whole range a rig config accepts, MechanicsConfig.contact_stiffness_g_per_mm <= 1e5; home-switch: 0 open, 1 closed)
+#: the range of each valued fault's drawn value (contact-stiffness: the plate swapped for one of 0.1-5 kg/mm, the
+#: whole range a rig config accepts, rigctl.core.drum.CONTACT_STIFFNESS_MAX_G_PER_MM; home-switch: 0 open, 1 closed)
 _VALUE_DRAWS: dict[str, tuple[float, float, bool]] = {  # name -> (low, high, log-uniform)
-    "contact-stiffness": (100.0, 1e5, True), "slip": (5.0, 60.0, False), "taxel-ohm": (47e3, 2e6, True),
+    "contact-stiffness": (100.0, wire.CONTACT_STIFFNESS_MAX_G_PER_MM, True), "slip": (5.0, 60.0, False), "taxel-ohm": (47e3, 2e6, True),
     "cell-gain": (0.3, 3.0, True), "cell-offset": (-1000.0, 1000.0, False), "coupling-slip": (5.0, 60.0, False),
     "steps-lost": (5.0, 60.0, False), "hx711-dout-noise": (1e-4, 0.05, True), "calibration-scale": (0.3, 3.0, True)}
 #: faults whose drawn value is one of two words (0 or 1: rigctl.core.faults.WORD_VALUES)
@@ -67,6 +67,8 @@ _WORD_DRAWS = frozenset({"home-switch"})
 CAMPAIGN_FAULTS: tuple[str, ...] = tuple(sorted(FAULTS))
 #: the campaign's draw before the bill of materials' faults were added (issue 75): its list of faults and its plate
 #: swaps' stiffness (0.25-6 kg/mm); the seeds of the cases fixed then draw their old cases from it (``draw="v1"``)
+#: the rig's own contact drawn up to the stiffest a rig config accepts (v1: up to 6 kg/mm, from before that bound)
+_STIFFNESS_MAX = wire.CONTACT_STIFFNESS_MAX_G_PER_MM
 _VALUE_DRAWS_V1 = {**_VALUE_DRAWS, "contact-stiffness": (250.0, 6000.0, True)}
 CAMPAIGN_FAULTS_V1: tuple[str, ...] = (
     "contact-stiffness", "eeprom-corrupt", "estop", "host-silence", "hx711-10sps", "hx711-frozen", "hx711-sck-broken",
@@ -138,7 +140,7 @@ def draw_case(seed: int, faults: Sequence[str] | None = None, draw: str = "v2") 
     duration = math.inf if rng.uniform() < 0.5 else float(rng.uniform(0.2, 4.0))
     if fault in INSTANT_FAULTS:
         duration = 0.0
-    stiffness = float(math.exp(rng.uniform(math.log(250.0), math.log(6000.0))))
+    stiffness = float(math.exp(rng.uniform(math.log(250.0), math.log(6000.0 if draw == "v1" else _STIFFNESS_MAX))))
     rate = int(rng.choice([10, 80]))
     forces = (float(rng.uniform(250.0, 1500.0)), float(rng.uniform(250.0, 1500.0)))
     speed = float(rng.choice([40.0, 80.0, 120.0]))

@@ -315,8 +315,9 @@ class MechanicsConfig:
             raise ValueError(f"hx711_rate_sps must be 10 or 80 (the HX711's RATE pin), got {self.hx711_rate_sps}")
         if not -0.2 < self.hx711_clock_error < 0.2:
             raise ValueError(f"hx711_clock_error must be within +-0.2, got {self.hx711_clock_error}")
-        if not 0 < self.contact_stiffness_g_per_mm <= 1e5:
-            raise ValueError(f"contact_stiffness_g_per_mm must be > 0, got {self.contact_stiffness_g_per_mm}")
+        if not 0 < self.contact_stiffness_g_per_mm <= wire.CONTACT_STIFFNESS_MAX_G_PER_MM:
+            raise ValueError(f"contact_stiffness_g_per_mm must be > 0 and <= {wire.CONTACT_STIFFNESS_MAX_G_PER_MM:g} (the "
+                             f"stiffest contact a rig config accepts), got {self.contact_stiffness_g_per_mm}")
         if self.actuator_stall_g < 0:
             raise ValueError(f"actuator_stall_g must be >= 0 (0: no stall), got {self.actuator_stall_g}")
 
@@ -979,8 +980,9 @@ class RigModel:
         changes how the force grows with further travel, not the force where the actuator stands; the spring's
         zero-force point moves so the force there is the same. ValueError."""
         k = float(g_per_mm)
-        if not 0 < k <= 1e6:
-            raise ValueError(f"contact stiffness must be > 0 g/mm, got {g_per_mm}")
+        if not 0 < k <= wire.CONTACT_STIFFNESS_MAX_G_PER_MM:
+            raise ValueError(f"contact stiffness must be > 0 and <= {wire.CONTACT_STIFFNESS_MAX_G_PER_MM:g} g/mm (the "
+                             f"stiffest contact a rig config accepts), got {g_per_mm}")
         with self._lock:
             m = self.config.mechanics
             own_gap = self._plate_gap_mm

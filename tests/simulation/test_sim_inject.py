@@ -30,14 +30,15 @@ def test_parse_fault_specs():
 def test_parse_the_force_path_faults():
     """Issue 55's faults by the names the fault campaign draws: a plate swap takes its stiffness (g/mm, > 0), a
     corrupt EEPROM is an instant (a brown-out while writing), ``@0`` is wired that way from power-on."""
-    assert parse_fault("contact-stiffness=6000@4") == FaultSpec("contact-stiffness", 4.0, math.inf, 6000.0)
+    assert parse_fault("contact-stiffness=5000@4") == FaultSpec("contact-stiffness", 4.0, math.inf, 5000.0)
     assert str(parse_fault("contact-stiffness=250@1+2")) == "contact-stiffness=250@1+2"
     assert parse_fault("eeprom-corrupt@0+5") == FaultSpec("eeprom-corrupt", 0.0, 0.0)
     assert parse_fault("hx711-frozen@2+1") == FaultSpec("hx711-frozen", 2.0, 1.0)
     assert parse_fault("hx711-sck-broken@3") == FaultSpec("hx711-sck-broken", 3.0)
     assert parse_fault("reversed-cell@0").at_power_on and not parse_fault("reversed-cell@0.1").at_power_on
-    for bad, words in (("contact-stiffness@1", "needs a value"), ("contact-stiffness=0@1", "1 to 100000"),
-                       ("contact-stiffness=-5@1", "1 to 100000"), ("hx711-frozen=3@1", "takes no value")):
+    for bad, words in (("contact-stiffness@1", "needs a value"), ("contact-stiffness=0@1", "1 to 5000"),
+                       ("contact-stiffness=-5@1", "1 to 5000"),
+                       ("contact-stiffness=6000@1", "1 to 5000"), ("hx711-frozen=3@1", "takes no value")):
         with pytest.raises(FaultSpecError, match=words):
             parse_fault(bad)
 

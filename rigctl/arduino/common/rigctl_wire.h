@@ -351,7 +351,11 @@
  * LOOP_PHASE_MRAD at the crossover k x Kp with the HX711's DELAY_PERIODS_X10 / 10 periods of delay */
 #define RIGCTL_FORCE_LEAD_PERIODS          3
 #define RIGCTL_PROBE_CONTACT_G             50
-#define RIGCTL_PROBE_TRAVEL_UM             100
+#define RIGCTL_PROBE_TRAVEL_UM             100 /* = PROBE_BLIND_G x 1000 / CONTACT_STIFFNESS_MAX_G_MM */
+/* the stiffest contact a rig config accepts, g/mm (a precondition: the rig as built's mount), and the force the
+ * probe's approach may add at it before a reading can show the contact (the approach speed is derived from both) */
+#define RIGCTL_CONTACT_STIFFNESS_MAX_G_MM  5000
+#define RIGCTL_PROBE_BLIND_G               500
 #define RIGCTL_PROBE_STEP_UM               20
 #define RIGCTL_LOOP_PHASE_MRAD             750
 #define RIGCTL_HX711_DELAY_PERIODS_X10     25

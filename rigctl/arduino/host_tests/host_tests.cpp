@@ -670,7 +670,7 @@ static void test_steprate()
 // refused (CONTACT_STIFFNESS), the over-force trip extrapolates the rise over the HX711's delay
 static void test_stiffness()
 {
-    for (double k : {2000.0, 6000.0}) {
+    for (double k : {2000.0, 4500.0}) { // 4500: under the rig config's 5000 g/mm (CONTACT_STIFFNESS_MAX_G_MM)
         ctl_t c;
         Plant p;
         uint32_t now = 0;
@@ -711,7 +711,10 @@ static void test_stiffness()
         run_ms(c, p, now, 3000);
         std::printf("stiffness: %.0f g/mm with Kp 0.002: 1450 g, state %u faults %u, peak %.0f g\n", k, c.state, c.faults,
                     p.peak_g);
-        CHECK(p.peak_g < 1650.0);
+        CHECK(p.peak_g < 1650.0 && c.faults == 0); // the limit governor: no FORCE_LIMIT on the loop's own approach
+        // a stiffness above the rig config's precondition is refused whatever the gains (spec 2.10)
+        c.stiffness_g_mm = RIGCTL_CONTACT_STIFFNESS_MAX_G_MM + 1;
+        CHECK(ctl_stiffness_max(&c) > RIGCTL_CONTACT_STIFFNESS_MAX_G_MM && !write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
     }
     {   // the trip sees the future: 6 kg/mm taken for soft (a stale stiffness), 5 mm/s into the contact
         ctl_t c;

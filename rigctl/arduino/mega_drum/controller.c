@@ -310,9 +310,12 @@ uint16_t ctl_stiffness_max(const ctl_t *c)
     return kp <= 0.0f || k >= 65535.0f ? 65535u : (uint16_t)k;
 }
 
+/* the probed stiffness is one the loop holds with its gains and one a rig config accepts (the probe's speed is derived
+ * from the latter: spec 2.10) */
 static uint8_t stiffness_ok(const ctl_t *c)
 {
-    return !c->stiffness_g_mm || c->stiffness_g_mm <= ctl_stiffness_max(c);
+    return !c->stiffness_g_mm ||
+           (c->stiffness_g_mm <= ctl_stiffness_max(c) && c->stiffness_g_mm <= RIGCTL_CONTACT_STIFFNESS_MAX_G_MM);
 }
 
 /* the probe's speed: PROBE_TRAVEL_UM in the time the trip looks ahead, so a contact is seen within that travel */
@@ -396,6 +399,29 @@ static void probe_reading(ctl_t *c, float f)
         }
         return;
     }
+}
+
+/* the force loop never commands a speed whose rise the trip would extrapolate past the limit (spec 2.11, issue 75:
+ * fault-free presses of 1,400 g on a 2,400 g/mm mount the probe accepts latched FORCE_LIMIT on the loop's own
+ * approach, its clamp speed rising 150 g a period there). The force now is the most of the contact's at the position
+ * (the probe's k and zero-force point), the reading plus k x the travel since the force it shows (2 periods ago, the
+ * sinc^4's delay: the probe's k errs on that short travel only) and the reading itself,
+ * and a speed v raises the reading k v T a period, which the trip extrapolates FORCE_LEAD_PERIODS ahead; so the speed
+ * towards the sensor is held to (FORCE_LIMIT_G - FORCE_TOLERANCE_G - F) / (k (LEAD + 1) T). Without a probed contact
+ * (never while the loop drives: it runs after the probe) the reading and the stiffest contact the loop holds. */
+static float limit_governor(const ctl_t *c, float f, float v)
+{
+    float spmm = (float)c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
+    float k = c->contact_valid ? c->contact_k_g_per_step * spmm : (float)ctl_stiffness_max(c);
+    float f_pos = c->contact_valid ? ((float)c->act_pos_steps - c->contact_x0_steps) * c->contact_k_g_per_step : f;
+    float f_now = f, room;
+    if (c->press_dir_n >= 3) /* the reading plus the travel since the true force it shows (2 periods: sinc^4) */
+        f_now = f + k * (float)(c->act_pos_steps - c->press_dir_steps[c->press_dir_n - 3]) / spmm;
+    if (f_pos > f_now) f_now = f_pos;
+    if (f > f_now) f_now = f;
+    room = (float)c->hreg[RIGCTL_HREG_FORCE_LIMIT_G] - (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G] - f_now;
+    float vmax = room > 0.0f ? room / (k * (float)(RIGCTL_FORCE_LEAD_PERIODS + 2) * hx_period(c)) : 0.0f;
+    return v > vmax ? vmax : v;
 }
 
 static void engage(ctl_t *c)
@@ -980,7 +1006,7 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
         probe_reading(c, f);
     } else if (c->act_mode == ACT_MODE_FORCE) {
         force_loop_gains(c);
-        c->act_vel_mm_s = force_pi_update(&c->pi, (float)sp, f, c->hx_period_s);
+        c->act_vel_mm_s = limit_governor(c, f, force_pi_update(&c->pi, (float)sp, f, c->hx_period_s));
         if (act_pos_mm(c) >= ACT_MAX_TRAVEL_MM && c->act_vel_mm_s > 0.0f) {
             c->act_vel_mm_s = 0.0f;
             fault(c, RIGCTL_FAULT_ACTUATOR_TRAVEL);
