@@ -393,10 +393,13 @@ class HandheldRig(Rig):
         raise NoDrumError("the handheld rig has no actuator: the operator presses the finger")
 
     def mount_texture(self, label: str, prompt: Callable[[str], Any] | None = None) -> None:
-        """Ask the operator to move to plate ``label`` (a label of :attr:`textures`)."""
+        """Ask the operator to move to plate ``label`` (a label of :attr:`textures`); with ``prompt`` (the run's plate
+        confirmation: the CLI's Enter on the terminal, a face's dialog) the cue asks for a confirmation and this
+        returns once ``prompt(text)`` has: the first scan is cued only then. Without one, nothing waits and the cue
+        does not ask for a confirmation."""
         label = self.textures.resolve(str(label))
-        text = f"plate {label}: put the finger at the start of plate {label}, then confirm"
-        self._cue("plate", text, {"texture": label})
+        text = f"plate {label}: put the finger at the start of plate {label}" + (", then confirm" if prompt else "")
+        self._cue("plate", text, {"texture": label, "confirm": prompt is not None})
         (prompt or self._say)(text)
         self.texture = label
 

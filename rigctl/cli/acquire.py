@@ -107,6 +107,12 @@ def _load_protocol(protocol: Any, seed: int | None, trials_per_condition: int | 
     return proto
 
 
+def confirm_on_the_terminal(message: str) -> None:
+    """A live handheld operator's plate confirmation: the cue (``message``) is on the terminal already (the rig's
+    ``prompt`` event); wait for Enter."""
+    input(">>> press Enter once the finger is there ")
+
+
 def plate_prompt(policy: str, *, hardware: bool, stdin_is_tty: bool,
                  echo: Callable[[str], Any] | None = None) -> Callable[[str], Any] | None:
     """The operator prompt ``prompt(message)`` of a ``--plates`` policy, handed to ``open_rig`` (and through it to
@@ -435,7 +441,8 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
               help="Rig config JSON (calibration); default $RIGCTL_CONFIG or ~/.config/rigctl/rig.json (used when "
                    "it exists).")
 @click.option("--plates", type=click.Choice(PLATE_POLICIES), default="prompt", show_default=True,
-              help="Plate changes on hardware: prompt = ask on the terminal and wait for Enter (refused when stdin "
+              help="Plate changes on hardware and for a live handheld operator (--motion lsl:/serial:): prompt = ask "
+                   "on the terminal and wait for Enter (refused when stdin "
                    "is not a terminal); auto = print 'plate change: mount texture plate X' with the time and carry "
                    "on without waiting (a plate changer, or an operator following the printed schedule); skip = "
                    "never ask: every trial runs on the plate already mounted and is labelled with the plan's texture "
@@ -482,7 +489,6 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     hardware = drum_port is not None
     if inject and hardware:
         raise click.UsageError("--inject works on the simulated rigs (--sim, --inprocess, --hil), not on hardware")
-    prompt = plate_prompt(plates, hardware=hardware, stdin_is_tty=sys.stdin.isatty())
     try:  # the rig config is read again when the rig opens; a bad one is refused here, before anything starts
         host_config = load_rig_config(config_path)
     except CalibrationError as exc:
@@ -499,6 +505,14 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     handheld = _handheld_rig(proto, handheld=handheld, motion=motion, hil=hil, inprocess=inprocess, hardware=hardware,
                              replay=replay, onboard=dict(onboard=onboard_encoder, classify=classify,
                                                          variant=classify_variant, taxel_port=taxel_port))
+    # a person at the plates: the drum rig's hardware, or a live handheld operator (a tracker, a motion board), whose
+    # plate cue says "then confirm" and waits for Enter on the terminal (--plates prompt) like a drum's plate change
+    live_operator = handheld and motion is not None and motion.startswith(("lsl:", "serial:"))
+    prompt = plate_prompt(plates, hardware=hardware or live_operator, stdin_is_tty=sys.stdin.isatty())
+    plate_confirm = None
+    if live_operator:  # the handheld rig's cues reach the terminal as events (_cues_on_the_terminal); only the
+        # plate cue waits, and only under --plates prompt (auto and skip: the cue is printed and the run goes on)
+        plate_confirm, prompt = (confirm_on_the_terminal if plates == "prompt" else None), None
     classifier = _scan_classifier(classify, calibration, classify_variant, pcs, handheld=handheld,
                                   alignment=classify_alignment)
     if hardware and plates == "skip":
@@ -528,7 +542,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
         _cues_on_the_terminal(control, source)
         try:  # in this thread: Ctrl-C and SIGTERM stop the run cleanly
             # a latched fault ends the run (nobody here can acknowledge it mid-run); --resume is the acknowledgement
-            run = ProtocolRun(control, proto, out, resume=resume, on_failure=on_failure,
+            run = ProtocolRun(control, proto, out, resume=resume, on_failure=on_failure, prompt=plate_confirm,
                               overwrite=overwrite, lsl=publish, on_trial=None if classifier is None else classifier.on_trial,
                               on_latch="end", acknowledge=acknowledge or ("rigctl acquire --resume",
                                                                            operator_name()))

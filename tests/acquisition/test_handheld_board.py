@@ -163,7 +163,8 @@ def test_a_serial_motion_board_beside_the_fingers_board(tmp_path, counting_finge
     motion = VirtualMotionBoard(seed=2, profiles=(("fast", 120.0, 120.0),), drift_ppm=300.0)
     try:
         res = CliRunner().invoke(main, ["acquire", str(tmp_path / "two.toml"), "--motion", f"serial:{motion.path}",
-                                        "--taxel-port", counting_finger, "--out", str(tmp_path / "s.h5"), "--quiet"])
+                                        "--taxel-port", counting_finger, "--out", str(tmp_path / "s.h5"), "--quiet",
+                                        "--plates", "auto"])
     finally:
         motion.close()
     assert res.exit_code == 0, res.output
@@ -226,7 +227,7 @@ def test_handheld_training_from_a_tracker_stream_and_the_fingers_board(lsl, tmp_
         port = _port(pub)
         out = tmp_path / "tr.h5"
         run = subprocess.run([*RIGCTL, "acquire", str(proto), "--handheld", "--motion", f"lsl:{name}@3", "--taxel-port",
-                              port, "--out", str(out)], capture_output=True, text=True, timeout=600)
+                              port, "--out", str(out), "--plates", "auto"], capture_output=True, text=True, timeout=600)
     finally:
         pub.kill()
         pub.wait()

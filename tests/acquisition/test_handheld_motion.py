@@ -143,7 +143,7 @@ def test_a_hand_that_hesitates_and_slips_back_completes_the_block_and_encodes(ls
     try:
         res = CliRunner().invoke(main, ["acquire", str(tmp / "small.toml"), "--out", str(tmp / "rt.h5"), "--quiet",
                                         "--handheld", "--motion", f"lsl:{name}@0", "--classify", str(enc),
-                                        "--pcs", "5"])
+                                        "--pcs", "5", "--plates", "auto"])
     finally:
         hand.close()
     assert res.exit_code == 0, res.output

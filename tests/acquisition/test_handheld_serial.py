@@ -91,13 +91,14 @@ def test_a_handheld_run_recorded_from_the_simulated_motion_board(tmp_path, monke
     try:
         board.corrupt_every(50)
         res = CliRunner().invoke(main, ["acquire", str(tmp_path / "fast.toml"), "--motion", f"serial:{board.path}",
-                                        "--out", str(tmp_path / "s.h5"), "--quiet"])
+                                        "--out", str(tmp_path / "s.h5"), "--quiet", "--plates", "auto"])
     finally:
         board.close()
     assert res.exit_code == 0, res.output
-    # the operator's cues on the terminal (a live motion source: nobody else tells the operator what to scan)
+    # the operator's cues on the terminal (a live motion source: nobody else tells the operator what to scan); the
+    # plate cue asks for no confirmation under --plates auto (nothing waits)
     cues = [line for line in res.output.splitlines() if line.startswith("operator: ")]
-    assert cues[0] == "operator: plate B: put the finger at the start of plate B, then confirm"
+    assert cues[0] == "operator: plate B: put the finger at the start of plate B"
     assert cues[1:] == ["operator: plate B, profile fast at about 120 mm/s: go"] * 2
     with open_session(tmp_path / "s.h5") as s:
         assert s.rig_config["scan_source"]["kind"] == "tracked_finger"
@@ -111,3 +112,62 @@ def test_a_handheld_run_recorded_from_the_simulated_motion_board(tmp_path, monke
             assert 70.0 < np.median(d.speed_mm_s[inner]) < 180.0  # the board's velocity: a fast pass
             assert 1.0 < d.duration_s < 3.5  # 200 mm at about 120 mm/s
         assert len(s.completed_ids()) == 2
+
+
+# wall (not yet moved): the simulated motion board streams on a pty paced to the wall clock (above); the plate cue
+# waits on a person's Enter on a real terminal (a pty as the command's stdin)
+@pytest.mark.realtime
+def test_a_live_operators_plate_cue_waits_for_enter_on_the_terminal(tmp_path, monkeypatch):
+    """Issue 78 item 5: with a live motion source the plate cue says "then confirm" and the run waits for Enter on the
+    terminal before it cues the first scan (--plates prompt, the default); without a terminal on stdin that is refused
+    before anything starts (exit 2, naming --plates auto), as on the drum rig's hardware."""
+    import os
+    import select
+    import subprocess
+    import sys
+    import time
+
+    from rigctl.simulation.motion_board import VirtualMotionBoard
+
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
+    (tmp_path / "fast.toml").write_text(FAST.replace("trials_per_condition = 2", "trials_per_condition = 1"))
+    board = VirtualMotionBoard(seed=1, profiles=(("fast", 120.0, 120.0),), drift_ppm=300.0)
+    args = [sys.executable, "-m", "rigctl", "acquire", str(tmp_path / "fast.toml"), "--motion", f"serial:{board.path}",
+            "--quiet"]
+    try:
+        no_tty = subprocess.run([*args, "--out", str(tmp_path / "n.h5")], capture_output=True, text=True,
+                                timeout=120, stdin=subprocess.DEVNULL)
+        assert no_tty.returncode == 2 and "stdin is not a terminal" in no_tty.stderr, no_tty.stderr
+        assert "--plates auto" in no_tty.stderr and not (tmp_path / "n.h5").exists()
+        master, slave = os.openpty()
+        proc = subprocess.Popen([*args, "--out", str(tmp_path / "s.h5")], stdin=slave, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        os.close(slave)
+        said: list[str] = []
+
+        def read_until(what: str, timeout_s: float) -> bool:
+            end = time.monotonic() + timeout_s
+            while time.monotonic() < end:
+                if select.select([proc.stderr], [], [], 0.2)[0]:
+                    line = proc.stderr.readline()
+                    said.append(line.rstrip("\n"))
+                    if what in line:
+                        return True
+            return False
+
+        try:
+            assert read_until("then confirm", 120), said
+            assert not read_until(": go", 3.0), said  # no scan is cued while nobody has confirmed the plate
+            os.write(master, b"\n")
+            assert read_until(": go", 60), said
+            assert proc.wait(timeout=300) == 0, said + proc.stderr.read().splitlines()
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            os.close(master)
+    finally:
+        board.close()
+    assert said[0] == "operator: plate B: put the finger at the start of plate B, then confirm", said
+    with open_session(tmp_path / "s.h5") as s:
+        assert len(s.completed_ids()) == 1
