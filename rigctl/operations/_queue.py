@@ -484,11 +484,16 @@ class RunQueue:
         return "nothing moves until a run starts (its start homes the rig)"
 
     def release(self) -> None:
-        """Let queued runs start again after STOP, or after a latch found at open has been acknowledged. QueueError
-        (409) naming it while the rig holds a latched fault."""
+        """Let queued runs start again after STOP, or after a latch found at open has been acknowledged: a start, so
+        the safety table decides (:meth:`RigControl.start_allowed`). QueueError (409) naming it while the rig holds a
+        latched fault, or with the table's why for any other refusal."""
         latch = self.control.latch
         if latch is not None:
             raise QueueError(f"the rig holds a latched fault: {latch.describe()} (POST /ack first)", 409)
+        try:
+            self.control.start_allowed("POST /queue/release")
+        except RuntimeError as exc:  # LatchedFault (latched meanwhile), SafetyRefused
+            raise QueueError(f"the queue is not released: {exc}", 409) from None
         with self._lock:
             self.held = False
             self._wake.notify_all()

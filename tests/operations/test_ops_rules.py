@@ -234,3 +234,28 @@ def test_the_rig_owner_opens_acknowledges_stops_and_closes_through_the_table(tmp
     finally:
         control.close()
     assert seen[-1] is SafetyEvent.CLOSE
+
+
+def test_the_queue_release_is_a_start_the_table_decides(tmp_path):
+    """`POST /queue/release` is a start (the table's START row names it): the run queue asks the table, and a table
+    that refuses starts (a mutated row) refuses the release with its why, the queue kept held."""
+    from rigctl.operations import QueueError, RigSource, RunQueue, open_control
+
+    control = open_control(RigSource("inprocess"), seed=1, host_config_path=tmp_path / "rig.json",
+                           home="unless_faulted")
+    q = RunQueue(control, tmp_path / "queue.json").start()
+    row = TRANSITIONS[SafetyEvent.START]
+    try:
+        q.stop()
+        assert q.held
+        TRANSITIONS[SafetyEvent.START] = (lambda s: "a mutated row refuses every start", *row[1:])
+        with pytest.raises(QueueError, match="mutated row") as refused:
+            q.release()
+        assert refused.value.status == 409 and q.held
+        TRANSITIONS[SafetyEvent.START] = row
+        q.release()
+        assert not q.held
+    finally:
+        TRANSITIONS[SafetyEvent.START] = row
+        q.close()
+        control.close()
