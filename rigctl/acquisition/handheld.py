@@ -118,6 +118,34 @@ def window_speed_trace(t: np.ndarray, along_mm: np.ndarray, origin_s: float, dur
             int(np.sum(raw <= SPEED_FLOOR_MM_S * window_s)))
 
 
+def occluded_windows(t: np.ndarray, origin_s: float, duration_s: float, window_s: float = WINDOW_S) -> list[int]:
+    """The real-time windows of ``[origin, origin + duration_s)`` (numbered from 0 as :func:`window_speed_trace`
+    numbers them) that a tracker gap overlaps: an interval between two samples ``t`` (s) longer than 1.5 x their
+    median (the finger occluded, a lost stream), over which the window's speed was interpolated, not measured (issue
+    78: a 0.5 s occlusion made window speeds up to 14x wrong; gaps over :data:`MAX_TRACKER_GAP_S` refuse the scan)."""
+    gaps = np.diff(t)
+    if gaps.size == 0:
+        return []
+    n = max(1, int(np.ceil(round(duration_s / window_s, 9))))
+    long = np.flatnonzero(gaps > 1.5 * float(np.median(gaps)))
+    out: set[int] = set()
+    for i in long:  # the windows the open interval (t[i], t[i + 1]) overlaps
+        first = int(np.floor((t[i] - origin_s) / window_s))
+        last = int(np.ceil((t[i + 1] - origin_s) / window_s)) - 1
+        out.update(range(max(first, 0), min(last, n - 1) + 1))
+    return sorted(out)
+
+
+def _occlusion_attrs(t: np.ndarray, origin_s: float, duration_s: float) -> dict[str, Any]:
+    """``occluded_windows`` (how many) and ``occluded_window_ids`` (their numbers, comma-separated; "" for none):
+    :func:`occluded_windows`, named in the log too."""
+    ids = occluded_windows(t, origin_s, duration_s)
+    if ids:
+        log.warning("tracker gaps over windows %s of the scan: their speeds are interpolated across the gap",
+                    ",".join(map(str, ids)))
+    return {"occluded_windows": len(ids), "occluded_window_ids": ",".join(map(str, ids))}
+
+
 def _crossing(t: np.ndarray, x: np.ndarray, level: float, after: int = 0) -> tuple[int, float] | None:
     """The first sample index ``i > after`` where ``x`` rises through ``level`` (``x[i-1] < level <= x[i]``) and the
     interpolated crossing time, or None."""
@@ -226,11 +254,12 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
     near = (t >= t_in - TRACE_MARGIN_S) & (t <= t_out + TRACE_MARGIN_S)
     if raw.onboard is not None:  # encoded on the board: its record, no taxel frames; times from its first sample
         origin = float(raw.onboard_start_s)
-        st, sv, floored = window_speed_trace(t, along, origin, raw.onboard.samples / layout.sample_rate_hz
-                                             if raw.onboard.samples else t_out - origin)
+        span_s = raw.onboard.samples / layout.sample_rate_hz if raw.onboard.samples else t_out - origin
+        st, sv, floored = window_speed_trace(t, along, origin, span_s)
         return TrialData(taxels=np.zeros((0, layout.n_channels), np.uint16), speed_mm_s=sv,
                          speed_time_s=st, position_mm=along[near], position_time_s=t[near] - origin,
                          attrs={**_tracker_attrs(raw, t, t_in, t_out, near, used_mm, enter[2]), "floored_windows": floored,
+                                **_occlusion_attrs(t, origin, span_s),
                                 "trial_time_origin_s": raw.time_origin_s + origin, **dict(raw.attrs)},
                          layout=layout, onboard=raw.onboard)
     fit = raw.clock_fit or DeviceClockFit(layout.sample_rate_hz)
@@ -250,6 +279,7 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
     steps = np.bitwise_and(np.diff(seq.astype(np.int64)), 0xFFFF)
     st, sv, floored = window_speed_trace(t, along, origin, keep.size / layout.sample_rate_hz)
     attrs: dict[str, Any] = {**_tracker_attrs(raw, t, t_in, t_out, near, used_mm, enter[2]), "floored_windows": floored,
+                             **_occlusion_attrs(t, origin, keep.size / layout.sample_rate_hz),
                              **trial_clock_attrs(fit, counts[keep], host),
                              "trial_time_origin_s": raw.time_origin_s + origin,  # the host-clock time of time 0
                              **dict(raw.attrs)}

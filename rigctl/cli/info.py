@@ -22,9 +22,9 @@ _STATUS = {int(s): s.name.lower() for s in TrialStatus}
 _SHOWN = ("n_samples", "dropped_frames", "crc_errors", "host_rate_hz", "force_mean_g", "speed_mean_mm_s",
           "index_source", "drum_speed_index_mm_s", "drum_speed_mismatch", "drum_speed_warning", "error",
           "encoded_on_board", "scan_duration_s", "tracker_rate_hz", "tracker_dropouts", "floored_windows",
-          "repeated_samples")
+          "occluded_windows", "repeated_samples")
 #: a handheld scan's measured fields (its attributes): shown per trial, and the planned duration replaced by the scan's
-HANDHELD_FIELDS = ("scan_duration_s", "tracker_rate_hz", "tracker_dropouts", "floored_windows")
+HANDHELD_FIELDS = ("scan_duration_s", "tracker_rate_hz", "tracker_dropouts", "floored_windows", "occluded_windows")
 
 
 def session_summary(path: str | Path, *, keep_nonfinite: bool = False,
@@ -148,7 +148,8 @@ def _trial_row(row: Any, report: Any, a: dict | None, index_row: Any) -> dict:
         if a.get("scan_duration_s") is not None:  # a handheld scan: its measured length, not the plan's
             for k in HANDHELD_FIELDS:
                 if a.get(k) is not None:
-                    t[k] = _count(a[k]) if k in ("tracker_dropouts", "floored_windows") else _num(a[k])
+                    t[k] = (_count(a[k]) if k in ("tracker_dropouts", "floored_windows", "occluded_windows")
+                            else _num(a[k]))
             t["planned_duration_s"], t["duration_s"] = t["duration_s"], float(a["scan_duration_s"])
             t["samples_per_s"] = n / t["duration_s"] if t["duration_s"] > 0 else None
     return t

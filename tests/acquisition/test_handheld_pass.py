@@ -62,8 +62,18 @@ def test_a_tracker_gap_longer_than_the_limit_refuses_the_scan():
     mid = (t > 2.0) & (t < 2.0 + MAX_TRACKER_GAP_S + 0.2)  # an occlusion of 0.5 s within the used part
     with pytest.raises(ScanError, match="lost the finger"):
         cut_scan(_scan(t[~mid], x[~mid]), LAYOUT)
-    short = (t > 2.0) & (t < 2.0 + MAX_TRACKER_GAP_S - 0.1)  # a shorter one is kept
-    assert cut_scan(_scan(t[~short], x[~short]), LAYOUT).n_samples > 0
+    short = (t > 2.0) & (t < 2.0 + MAX_TRACKER_GAP_S - 0.1)  # a shorter one is kept, its windows named
+    kept = cut_scan(_scan(t[~short], x[~short]), LAYOUT)
+    assert kept.n_samples > 0
+    # the gap: from the last sample before 2.0 s to the first after 2.2 s, on the trial's windows of 0.1 s from its
+    # first frame (item 5: occlusions named per window)
+    before, after = t[t <= 2.0][-1], t[t >= 2.0 + MAX_TRACKER_GAP_S - 0.1][0]
+    origin = kept.attrs["trial_time_origin_s"]
+    first, last = int((before - origin) // 0.1), int(np.ceil((after - origin) / 0.1)) - 1
+    assert kept.attrs["occluded_window_ids"] == ",".join(map(str, range(first, last + 1)))
+    assert kept.attrs["occluded_windows"] == last - first + 1 == 3
+    whole = cut_scan(_scan(t, x), LAYOUT)
+    assert whole.attrs["occluded_windows"] == 0 and whole.attrs["occluded_window_ids"] == ""
 
 
 @pytest.mark.parametrize("where", ["lifted", "off the side"])
