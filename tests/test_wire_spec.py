@@ -308,10 +308,11 @@ def test_faults(tables, spec_text, h):
                                          spec_text).groups())
     assert (h["RIGCTL_HOME_MAX_TRAVEL_MM"], h["RIGCTL_HOME_TIMEOUT_MS"]) == (travel, home_ms) == \
         (wire.HOME_MAX_TRAVEL_MM, wire.HOME_TIMEOUT_MS)
-    proof, rise = map(int, re.search(r"did not open within (\d+) mm of leaving home, or the load cell's untared force "
-                                     r"rose more than (\d+) g", spec_text).groups())
-    assert (h["RIGCTL_HOME_PROOF_MM"], h["RIGCTL_DIRECTION_RISE_G"]) == (proof, rise) == \
-        (wire.HOME_PROOF_MM, wire.DIRECTION_RISE_G)
+    leave, rise = map(int, re.search(r"did not open within (\d+) um of leaving home \(HOME_LEAVE_UM, creeping\), or the "
+                                     r"load cell's untared force rose more than (\d+) g", spec_text).groups())
+    proof = int(re.search(r"within the leaving travel plus (\d+) mm, HOME_PROOF_MM", spec_text).group(1))
+    assert (h["RIGCTL_HOME_LEAVE_UM"], h["RIGCTL_HOME_PROOF_MM"], h["RIGCTL_DIRECTION_RISE_G"]) == (leave, proof, rise) \
+        == (wire.HOME_LEAVE_UM, wire.HOME_PROOF_MM, wire.DIRECTION_RISE_G)
 
 
 def test_the_press_direction_watch_constants(spec_text, h):

@@ -552,6 +552,35 @@ static void test_safety()
             CHECK(stuck ? !c.tared : (c.tared && std::abs(c.force_gf) < 5.0f));
         }
     }
+    {   // issue 75 items 2 and 3: the home switch stuck closed, a reset under 1000 g (1 kg/mm, 80 SPS), then HOME and
+        // CLEAR_FAULT + HOME x3 as the advice said: HOME leaves the "closed" switch creeping and the load watch stops
+        // it within HOME_RISE_G; the ratchet keeps every later HOME from leaving past that latch (HOME_NOT_FOUND, no
+        // motion). Firmware 1.3: 1,692 -> 2,255 -> 2,902 g at 3 mm/s, 2 mm further in each time
+        ctl_t c;
+        Plant p;
+        p.k = 1000;
+        p.sinc4 = true;
+        ctl_init(&c, 0, 0);
+        c.zero_raw = (int32_t)p.offset;
+        c.zero_valid = 1;
+        now = 0;
+        p.x_mm = p.gap + 1.0; // 1000 g on the cell
+        p.switch_stuck = true;
+        run_ms(c, p, now, 100);
+        p.peak_g = 0;
+        double x_first = 0;
+        for (int attempt = 0; attempt < 4; attempt++) {
+            if (attempt) CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT));
+            CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_HOME));
+            for (int i = 0; i < 200 && c.state == RIGCTL_STATE_HOMING; i++) run_ms(c, p, now, 50);
+            if (!attempt) x_first = p.x_mm;
+            std::printf("safety: switch stuck closed under 1000 g, HOME %d: faults 0x%x, x %.3f mm, peak %.0f g\n",
+                        attempt + 1, c.faults, p.x_mm, p.peak_g);
+            CHECK(c.state == RIGCTL_STATE_FAULT && !c.homed);
+            CHECK(attempt ? c.faults == RIGCTL_FAULT_HOME_NOT_FOUND : c.faults == RIGCTL_FAULT_ACTUATOR_DIRECTION);
+        }
+        CHECK(p.x_mm <= x_first + 0.001 && p.peak_g < 1000.0 + 100.0); // no walk: one creep's rise, once
+    }
     {   // issue 75 row 1: the motor's coil pair swapped while the loop holds 1400 g (its proof from before the swap),
         // then the release's back-off (a latch's is the same): it proves its way with a short step first and stops
         // where it stands; it adds at most BACKOFF_RISE_G + BACKOFF_PROOF_G (60 g) to the force at the latch (firmware 1.3

@@ -206,8 +206,20 @@ static void press_dir_forget(ctl_t *c)
     c->press_dir_leave = 0;
 }
 
+/* the faults after which the way towards the sensor is in doubt: the ratchet guard (spec 2.11, issue 75) holds their
+ * latch's position, and no HOME started after it leaves the switch past it (a switch stuck closed reads "home"
+ * anywhere: every acknowledged HOME walked the actuator further in). Presses need a homed controller, which after such
+ * a latch means a back-off that proved its way or a HOME that proved the switch; that HOME releases the ratchet */
+#define RATCHET_FAULTS                                                                                            \
+    (RIGCTL_FAULT_FORCE_LIMIT | RIGCTL_FAULT_POSITION_LIMIT | RIGCTL_FAULT_ACTUATOR_DIRECTION |                   \
+     RIGCTL_FAULT_CONTACT_LOST | RIGCTL_FAULT_CONTACT_STIFFNESS | RIGCTL_FAULT_LOADCELL_REVERSED)
+
 static void fault(ctl_t *c, uint16_t bits)
 {
+    if (bits & RATCHET_FAULTS) { /* no start goes further towards the sensor than this (spec 2.11) */
+        c->ratchet_valid = 1;
+        c->ratchet_steps = c->act_pos_steps;
+    }
     /* a latch while pressing backs off only the way the loop's motion proved; else it stops where it stands, not
      * homed (the start's HOME creeps and proves the way) */
     if (force_engaged(c) && !press_dir_proven(c)) c->homed = 0;
@@ -696,7 +708,7 @@ static void home_step(ctl_t *c, uint32_t now_ms)
             c->home_creep = 0;
             c->home_phase = HOME_LEAVE;
             c->home_phase_steps = c->act_pos_steps;
-            c->act_vel_mm_s = ACT_HOME_SPEED_MM_S;
+            c->act_vel_mm_s = 0.0f; /* the next tick leaves creeping (or not at all: the ratchet) */
             return;
         }
         if ((float)(c->home_start_steps - c->act_pos_steps) >= ACT_HOME_MAX_TRAVEL_MM * spmm ||
@@ -708,20 +720,28 @@ static void home_step(ctl_t *c, uint32_t now_ms)
         c->act_vel_mm_s = c->home_creep ? -(float)RIGCTL_HOME_CREEP_UM * 1e-3f / hx_period(c) : -ACT_HOME_SPEED_MM_S;
         return;
     case HOME_LEAVE:
+        /* it leaves creeping (HOME_CREEP_UM per HX711 period, the load watched at HOME_RISE_G: ctl_loadcell) and the
+         * switch must open within HOME_LEAVE_UM, before any fast move (issue 75: a switch stuck closed walked the
+         * actuator 2 mm into the sensor at 3 mm/s on every acknowledged HOME); never past the ratchet */
         if (!c->home_switch) {
             c->home_phase = HOME_RETURN;
             c->home_leave_steps = moved;
             c->home_phase_steps = c->act_pos_steps;
             c->act_vel_mm_s = -ACT_HOME_SPEED_MM_S;
-        } else if ((float)moved >= (float)RIGCTL_HOME_PROOF_MM * spmm) {
-            direction_fault(c); /* driven "away" for 2 mm, the switch still closed: the motor turns the other way */
+        } else if (c->ratchet_valid && c->act_pos_steps >= c->ratchet_steps) {
+            break; /* the switch reads closed where the last latch stopped the actuator: it is not home */
+        } else if ((float)moved >= (float)RIGCTL_HOME_LEAVE_UM * 1e-3f * spmm) {
+            direction_fault(c); /* left creeping, the switch still closed: the motor turns the other way, or the
+                                 * switch is stuck closed (the load watch sees a contact first) */
         } else {
-            c->act_vel_mm_s = ACT_HOME_SPEED_MM_S;
+            c->act_vel_mm_s = (float)RIGCTL_HOME_CREEP_UM * 1e-3f / hx_period(c);
         }
         return;
     default: /* HOME_RETURN */
         if (c->home_switch) {
-            /* home: zero the position, then tare on the next reading (ctl_loadcell ends HOMING: IDLE is tared) */
+            /* home: zero the position, then tare on the next reading (ctl_loadcell ends HOMING: IDLE is tared); the
+             * switch proven (left and returned), the ratchet is released */
+            c->ratchet_valid = 0;
             c->act_vel_mm_s = 0.0f;
             c->act_mode = ACT_MODE_HOLD;
             c->zero_position = 1;
@@ -927,8 +947,9 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
          * sensor (spec 2.11); without a known zero, an untared rise in the scale's sign (spec 2.5) */
         /* from an unknown position HOME creeps and stops at a small rise; from home's known position (and backing
          * off) the readings still carry the press's last rise: the larger threshold */
-        float thr = c->act_mode == ACT_MODE_HOMING && !c->homed ? (float)RIGCTL_HOME_RISE_G
-                                                                : (float)RIGCTL_DIRECTION_RISE_G;
+        float thr = c->act_mode == ACT_MODE_HOMING && (!c->homed || c->home_phase == HOME_LEAVE)
+                        ? (float)RIGCTL_HOME_RISE_G
+                        : (float)RIGCTL_DIRECTION_RISE_G;
         if (c->move_skip) c->move_skip--;
         if (direction_zero(c, &zero)) {
             float d = load_g(c, raw, zero);

@@ -49,6 +49,12 @@ typedef struct {
     uint8_t home_phase;      /* HOME_SEEK, HOME_LEAVE, HOME_RETURN */
     int32_t home_phase_steps; /* the step count when the phase began */
     int32_t home_leave_steps; /* steps HOME_LEAVE took to open the switch */
+    /* the ratchet guard (spec 2.11, issue 75): where the last crush-class latch stopped the actuator, in the step
+     * count's frame; no HOME leaves the switch past it. The controller's held state: it survives CLEAR_FAULT and
+     * failed HOMEs, a HOME that proves the switch releases it, a reset loses it (the count is unknown then: HOME
+     * creeps and the load against the zero stored in EEPROM guards instead) */
+    uint8_t ratchet_valid;
+    int32_t ratchet_steps;
     /* direction by force (spec 2.5): the lowest untared reading since HOME or a back-off began */
     int32_t move_ref_raw;
     uint8_t move_ref_valid;
