@@ -72,6 +72,10 @@ def _checked_segment(ctx, param, value):
 @click.option("--clip", is_flag=True, default=None,
               help="Pin values outside the ADC range (volts at or above --volts-ref, a --resample overshoot) to it, "
                    "counted and printed; without it they are refused.")
+@click.option("--close-gaps", is_flag=True, default=None,
+              help="Close the gaps inside a trial's time stamps (a CSV time column: interpolated across; NWB, XDF: "
+                   "the samples joined back to back; frames lost in rigctl's XDF stream), named and declared in the "
+                   "ledger; without it such a file is refused.")
 @click.option("--offset", type=floats(-1e12, 1e12), default=None, metavar="O", help="See --scale (default 0).")
 @click.option("--columns", default=None, metavar="A,B,...",
               help="CSV: the channel columns, in channel order (header names or 0-based indices); the other "
@@ -103,7 +107,7 @@ def _checked_segment(ctx, param, value):
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @progress_option
 def import_recordings(files, out, rate_hz, channels, layout, label_pattern, texture, resample_hz, segment_spec,
-                      align, pre_ms, min_swing, mapping, volts_ref, scale, clip, offset, columns, time_column, time_unit,
+                      align, pre_ms, min_swing, mapping, volts_ref, scale, clip, close_gaps, offset, columns, time_column, time_unit,
                       repeated_stamps, variable, nan, adc_bits, preset, skip_bad, overwrite, as_json, progress):
     """Import FILES (format from the extension: .csv, .npy, .npz, .mat, .nwb) into the session file --out.
 
@@ -123,7 +127,7 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
         rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern, texture=texture,
         resample_hz=resample_hz, segment_spec=segment_spec, align=align, pre_ms=pre_ms, min_swing=min_swing,
         mapping=mapping,
-        volts_ref=volts_ref, adc_bits=adc_bits, nan=nan, skip_bad=skip_bad, scale=scale, offset=offset, clip=clip,
+        volts_ref=volts_ref, adc_bits=adc_bits, nan=nan, skip_bad=skip_bad, scale=scale, offset=offset, clip=clip, close_gaps=close_gaps,
         columns=[c.strip() for c in columns.split(",") if c.strip()] if columns else None,
         time_column=time_column, time_unit=time_unit, repeated_stamps=repeated_stamps, variable=variable)
     try:

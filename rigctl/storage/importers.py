@@ -293,7 +293,7 @@ MAX_MAPPING_BYTES = 16 << 20
 #: keys a TOML mapping may hold (module docstring)
 MAPPING_KEYS = ("rate_hz", "channels", "layout", "sensor", "adc_bits", "volts_ref", "scale", "offset",
                 "label_pattern", "resample_hz", "segment", "align", "pre_ms", "min_swing", "nan", "variable", "columns",
-                "time_column", "time_unit", "repeated_stamps", "clip", "defaults", "files", "texture_set")
+                "time_column", "time_unit", "repeated_stamps", "clip", "close_gaps", "defaults", "files", "texture_set")
 
 
 def _resolve_layout(n_channels: int, rate_hz: float, *, channels: int | None, layout: str | None,
@@ -433,6 +433,9 @@ class ImportOptions:
     repeated_stamps: str = "refuse"
     #: values outside the ADC range are pinned to it (counted, said) instead of refused
     clip: bool = False
+    #: gaps inside a trial's time stamps (a CSV time column, an NWB series', an XDF stream's, frames lost) are
+    #: closed (interpolated across or joined back to back: declared in the ledger) instead of refused
+    close_gaps: bool = False
     per_file: Mapping[str, Any] = field(default_factory=dict)
     defaults: Mapping[str, Any] = field(default_factory=dict)
     texture_set: Mapping[str, Any] | None = None
@@ -469,7 +472,7 @@ class ImportOptions:
                    mapped=scale is not None or offset is not None or pick("volts_ref") is not None,
                    variable=pick("variable"), columns=pick("columns"), time_column=pick("time_column"),
                    time_unit=pick("time_unit"), repeated_stamps=pick("repeated_stamps", "refuse"),
-                   clip=bool(pick("clip", False)),
+                   clip=bool(pick("clip", False)), close_gaps=bool(pick("close_gaps", False)),
                    per_file=m.get("files", {}) or {}, defaults=defaults, texture_set=m.get("texture_set"))
 
     def value_scale(self, n_clipped: int) -> dict[str, Any]:
@@ -562,15 +565,26 @@ class _Import:
                             {**attrs, **({"source_block": bi} if len(blocks) > 1 else {})})
 
     def _name_gaps(self, path: Path, meta: dict[str, Any]) -> None:
-        """Name the holes an NWB series' or an XDF stream's own time stamps show (as a CSV time column's are) and
-        the frames rigctl's XDF stream lost: the samples around them are joined back to back."""
+        """Refuse the holes inside a trial that an NWB series' or an XDF stream's own time stamps or a CSV time
+        column show, and the frames rigctl's XDF stream lost (closing them changes the timing: never silently),
+        unless ``close_gaps`` (``--close-gaps``); then name them (the samples around them joined back to back or,
+        for a time column, interpolated across: declared in the ledger)."""
         gaps, lost = meta.get("gaps") or [], int(meta.get("lost_frames") or 0)
+        grid_gaps = (meta.get("time_grid") or {}).get("gaps") or []
+        if not self.opts.close_gaps and (gaps or lost or grid_gaps):
+            said = [f"{len(gaps or grid_gaps)} gap(s) in the time stamps ({gaps_text(gaps or grid_gaps)})"
+                    if gaps or grid_gaps else "", f"{lost} frame(s) lost (the stream's frame numbers skip)" if lost
+                    else ""]
+            raise RecordingImportError(
+                f"{path}: {'; '.join(x for x in said if x)} inside a trial: closing them changes the timing: cut the "
+                f"file at the gap, or give --close-gaps to {'interpolate across' if grid_gaps else 'join'} them "
+                "(declared in the import's ledger)")
         if gaps:
             self.notes.append(f"{path.name}: {len(gaps)} gap(s) in the time stamps ({gaps_text(gaps)}): the samples "
-                              "on either side are joined back to back (each gap closed; recorded in the import steps)")
+                              "on either side are joined back to back (--close-gaps; in the ledger)")
         if lost:
             self.notes.append(f"{path.name}: {lost} frame(s) lost (the stream's frame numbers skip): the frames on "
-                              "either side are joined back to back")
+                              "either side are joined back to back (--close-gaps; in the ledger)")
 
     def _name_choices(self, path: Path, meta: dict[str, Any]) -> None:
         """Name what was chosen for the user: the series of a file that holds several, a CSV's unusual dialect."""

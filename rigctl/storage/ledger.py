@@ -28,7 +28,7 @@ def _file_entries(read: Mapping[str, Any]) -> list[LedgerEntry]:
                             f"linear interpolation: {grid.get('samples_in')} rows -> {grid.get('samples_out')} samples"})
         if grid.get("gaps"):
             out.append({"step": "gaps", "file": name, "count": len(grid["gaps"]),
-                        "what": f"{len(grid['gaps'])} gap(s) in the time column interpolated across"})
+                        "what": f"{len(grid['gaps'])} gap(s) in the time column interpolated across (--close-gaps)"})
         rep = grid.get("repeated_stamps") or None
         if rep:
             out.append({"step": "repeated_stamps", "file": name, "count": rep.get("rows_dropped"),
@@ -39,10 +39,12 @@ def _file_entries(read: Mapping[str, Any]) -> list[LedgerEntry]:
                     "what": f"{nan['samples']} NaN sample(s) filled ({nan['policy']})"})
     if read.get("gaps"):
         out.append({"step": "gaps", "file": name, "count": len(read["gaps"]),
-                    "what": f"{len(read['gaps'])} gap(s) in the time stamps closed (the samples joined back to back)"})
+                    "what": f"{len(read['gaps'])} gap(s) in the time stamps closed (the samples joined back to back, "
+                            "--close-gaps)"})
     if read.get("lost_frames"):
         out.append({"step": "lost_frames", "file": name, "count": read["lost_frames"],
-                    "what": f"{read['lost_frames']} lost frame(s) closed (the frames joined back to back)"})
+                    "what": f"{read['lost_frames']} lost frame(s) closed (the frames joined back to back, "
+                            "--close-gaps)"})
     return out
 
 

@@ -346,16 +346,21 @@ def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = 
         arr, rate, xdf_meta = read_xdf(path, variable, RecordingImportError)
         seq = xdf_meta.pop("frame_seq", None)
         if seq is not None and len(seq) > 1:  # rigctl's own stream: frames lost on the way, by their numbers
-            xdf_meta["lost_frames"] = int(np.sum(np.clip(np.diff(np.asarray(seq, np.int64)) - 1, 0, None)))
+            skips = np.clip(np.diff(np.asarray(seq, np.int64)) - 1, 0, None)
+            xdf_meta["lost_at"] = [(int(i) + 1, int(skips[i])) for i in np.flatnonzero(skips)]
         meta.update(xdf_meta)
     else:
         arr, rate, nwb_meta = _read_nwb(path, variable)
         meta.update(nwb_meta)
     blocks = _as_blocks(np.asarray(arr, dtype=np.float64), channels, str(path))
     nwb_trials = meta.pop("trials", None)
+    lost_at = meta.pop("lost_at", None)
     if nwb_trials and len(blocks) == 1:  # an NWB trials table or rigctl's XDF markers: one block per trial, labelled
         blocks = [blocks[0][t["start"]:t["stop"]] for t in nwb_trials]
         meta["block_labels"] = [t["labels"] for t in nwb_trials]
+        _gaps_inside(meta, [(int(t["start"]), int(t["stop"])) for t in nwb_trials], lost_at)
+    elif "gaps" in meta or lost_at is not None:
+        _gaps_inside(meta, [(0, blocks[0].shape[0] if blocks else 0)], lost_at)
     for b in blocks:
         if b.shape[0] < 1:
             raise RecordingImportError(f"{path}: no samples")
@@ -368,6 +373,19 @@ def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = 
     filled = [fill_nan(b, nan, str(path)) for b in blocks]
     meta["nan"] = {"policy": nan, "samples": sum(n for _, n in filled)}
     return [b for b, _ in filled], rate, meta
+
+
+def _gaps_inside(meta: dict[str, Any], spans: list[tuple[int, int]], lost_at: list[tuple[int, int]] | None) -> None:
+    """Keep in ``meta["gaps"]`` the stamp gaps that fall inside the samples read as trials (``spans``: sample ranges;
+    a gap between two trials of a trials table or rigctl's markers joins nothing), and count in
+    ``meta["lost_frames"]`` the frames lost inside them (``lost_at``: (sample after the skip, frames skipped))."""
+    def inside(at: int) -> bool:
+        return any(a < at < b for a, b in spans)
+
+    if "gaps" in meta:
+        meta["gaps"] = [g for g in meta["gaps"] if inside(int(g.get("at_sample", 1)))]
+    if lost_at is not None:
+        meta["lost_frames"] = sum(n for at, n in lost_at if inside(at))
 
 
 def check_whole_counts(x: np.ndarray, where: str) -> None:

@@ -165,8 +165,8 @@ def onto_grid(x: np.ndarray, times_s: np.ndarray, rate_hz: float | None, where: 
 def stamp_gaps(stamps_s: np.ndarray, rate_hz: float | None = None) -> list[dict[str, float]]:
     """The gaps among time stamps (seconds): spacings over 1.5 periods (of ``rate_hz``, else the median spacing's)
     plus 6 sd of the jitter (robust: the median absolute deviation), each ``{"at_s": from the first stamp,
-    "length_ms": the spacing}``. For every importer's stamps: a CSV's time column, an NWB series' timestamps, an XDF
-    stream's."""
+    "length_ms": the spacing, "at_sample": the index of the first stamp after it}``. For every importer's stamps: a
+    CSV's time column, an NWB series' timestamps, an XDF stream's."""
     t = np.asarray(stamps_s, np.float64)
     if t.size < 3:
         return []
@@ -174,7 +174,7 @@ def stamp_gaps(stamps_s: np.ndarray, rate_hz: float | None = None) -> list[dict[
     period = 1.0 / float(rate_hz) if rate_hz else float(np.median(dt))
     spread = 1.4826 * float(np.median(np.abs(dt - np.median(dt))))  # the jitter's sd, robust to the gaps themselves
     gap_i = np.flatnonzero(dt > 1.5 * period + 6.0 * spread)
-    return [{"at_s": float(t[i] - t[0]), "length_ms": float(dt[i] * 1e3)} for i in gap_i]
+    return [{"at_s": float(t[i] - t[0]), "length_ms": float(dt[i] * 1e3), "at_sample": int(i) + 1} for i in gap_i]
 
 
 def gaps_text(gaps: list[dict[str, float]]) -> str:

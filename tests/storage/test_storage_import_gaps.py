@@ -1,7 +1,8 @@
-"""Gaps named in every importer that has time stamps (issue 77 item 5): a 0.5 s hole in an NWB series'
-timestamps and 200 frames lost in an XDF stream vanished on import (the samples joined back to back, exit 0 without
-a word) while the same hole in a CSV time column is named. Now each is named on the terminal like the CSV's; a file
-without holes says nothing."""
+"""Gaps refused or declared in every importer that has time stamps (issue 77 items 1 and 5): a 0.5 s hole in an NWB
+series' timestamps and 200 frames lost in an XDF stream vanished on import (the samples joined back to back, exit 0
+without a word) while the same hole in a CSV time column was interpolated across. Now closing a gap inside a trial
+is refused in one line (nothing written) unless asked for by name (--close-gaps): then it is named on the terminal
+and declared in the ledger; a file without holes says nothing."""
 
 from __future__ import annotations
 
@@ -34,9 +35,14 @@ def _nwb(path, stamps):
 def test_a_hole_in_nwb_timestamps_is_named(tmp_path):
     stamps = np.arange(2000) / 1000.0
     stamps[1200:] += 0.5  # half a second lost at 1.2 s
-    rc, out = _import(_nwb(tmp_path / "hole.nwb", stamps), tmp_path / "h.h5")
+    hole = _nwb(tmp_path / "hole.nwb", stamps)
+    rc, out = _import(hole, tmp_path / "h.h5")
+    assert rc == 1 and "hole.nwb: 1 gap(s) in the time stamps (501.0 ms at 1.199 s) inside a trial" in out, out
+    assert "--close-gaps" in out and "Traceback" not in out and not (tmp_path / "h.h5").exists(), out
+    rc, out = _import(hole, tmp_path / "h.h5", "--close-gaps")
     assert rc == 0, out
     assert "hole.nwb: 1 gap(s) in the time stamps (501.0 ms at 1.199 s)" in out, out
+    assert "ledger: hole.nwb: 1 gap(s) in the time stamps closed" in out, out
     rc, out = _import(_nwb(tmp_path / "even.nwb", np.arange(2000) / 1000.0), tmp_path / "e.h5")
     assert rc == 0 and "gap" not in out, out
 
@@ -53,8 +59,12 @@ def test_frames_lost_in_an_xdf_stream_are_named(tmp_path):
     write_xdf(tmp_path / "rec.xdf", [XdfStream(stream_info_xml("tip", "Tactile", 4, 500.0, "int16", "tip-1"),
                                                "int16", taxels, stamps)])
     rc, out = _import(tmp_path / "rec.xdf", tmp_path / "x.h5")
+    assert rc == 1 and "rec.xdf: 1 gap(s) in the time stamps (402.0 ms at 1.398 s) inside a trial" in out, out
+    assert not (tmp_path / "x.h5").exists()
+    rc, out = _import(tmp_path / "rec.xdf", tmp_path / "x.h5", "--close-gaps")
     assert rc == 0, out
     assert "rec.xdf: 1 gap(s) in the time stamps (402.0 ms at 1.398 s)" in out, out
+    assert "ledger: rec.xdf: 1 gap(s) in the time stamps closed" in out, out
 
 
 def test_held_rows_in_a_csv_are_counted_and_named(tmp_path):

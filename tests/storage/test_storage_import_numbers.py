@@ -92,9 +92,14 @@ def test_columns_and_a_time_column_resampled_onto_the_rate_grid(tmp_path, monkey
                comments="")
     rc, out = _rigctl("import", "wide.csv", "--rate", 1000, "--texture", "A", "--out", "w.h5", cwd=tmp_path)
     assert rc == 1 and "not whole ADC counts" in out, out  # 44 columns: the aux ones are not counts
-    rc, out = _rigctl("import", "wide.csv", "--rate", 1000, "--texture", "A", "--columns", "tx0,tx1,tx2,tx3",
-                      "--time-column", "stamp", "--time-unit", "s", "--out", "w.h5", cwd=tmp_path)
+    args = ("import", "wide.csv", "--rate", 1000, "--texture", "A", "--columns", "tx0,tx1,tx2,tx3", "--time-column",
+            "stamp", "--time-unit", "s", "--out", "w.h5")
+    rc, out = _rigctl(*args, cwd=tmp_path)  # a gap inside the trial: interpolating across it is asked for by name
+    assert rc == 1 and "1 gap(s) in the time stamps" in out and "--close-gaps" in out, out
+    assert "Traceback" not in out and not Path("w.h5").exists(), out
+    rc, out = _rigctl(*args, "--close-gaps", cwd=tmp_path)
     assert rc == 0, out
+    assert "ledger: wide.csv: 1 gap(s) in the time column interpolated across (--close-gaps)" in out, out
     assert "time column resampled onto the 1000 Hz grid" in out and "jitter sd" in out, out
     assert "1 gap(s)" in out and "at 1.19" in out, out
     got = _counts(Path("w.h5"))[0]
@@ -177,6 +182,7 @@ def test_other_peoples_files_section(tmp_path):
     out = r.stdout + r.stderr
     assert r.returncode == 0 and "Traceback" not in out, out
     assert "time column resampled onto the 1000 Hz grid" in out and "1 gap(s)" in out, out
+    assert "logger__felt.csv: 1 gap(s) in the time stamps" in out and "refused" in out, out
     assert "read 'pressure' of accelerometer, pressure" in out, out
     with open_session(work / "cnc.h5") as s:
         assert sorted(s.plan["speed_mm_s"]) == [20.0, 60.0, 100.0]
