@@ -24,17 +24,6 @@ def _windows_scaled(ctx, param, value):
     return n
 
 
-def _repeated_samples(session: Path) -> tuple[int, int] | None:
-    """(samples, trials) of the session's complete trials counted as repeated when written (their
-    ``repeated_samples`` attribute, rigctl.core.trial.repeated_samples), or None when there are none."""
-    from rigctl.storage.session import open_session
-
-    with open_session(session) as s:
-        ids = s.completed_ids()
-        counts = [int(a.get("repeated_samples", 0) or 0) for a in s.trial_table(ids, ("repeated_samples",))]
-    return (sum(counts), sum(c > 0 for c in counts)) if any(counts) else None
-
-
 def _check_sizes(session, out, *, variants, batch, window_s, windows_unscaled, windows_scaled, store_spikes):
     """Refuse, before any work, an encoding whose output does not fit the disk or whose batch does not fit the
     memory (:func:`rigctl.encoding.sizing.estimate_encode`), naming the option and the figure (exit 2)."""
@@ -146,10 +135,6 @@ def encode(session, out, overwrite, scheduler, workers, batch, variants, window_
                                   taxel_range=_range_of(range_from))
         for w in caught:  # one line each, not Python's file:line form
             click.echo(f"warning: {w.message}", err=True)
-        held = _repeated_samples(session)
-        if held:  # a held reading is encoded as recorded: said, like the trials' other counts
-            click.echo(f"warning: {held[0]} samples in {held[1]} trials repeat the one before on every taxel (held "
-                       "readings, encoded as recorded; rigctl info lists them)", err=True)
     except OutputError:  # another writer took the output meanwhile: refused like any output (exit 2, as export)
         raise
     except (ValueError, KeyError, OSError, SessionError) as exc:

@@ -22,7 +22,7 @@ _STATUS = {int(s): s.name.lower() for s in TrialStatus}
 _SHOWN = ("n_samples", "dropped_frames", "crc_errors", "host_rate_hz", "force_mean_g", "speed_mean_mm_s",
           "index_source", "drum_speed_index_mm_s", "drum_speed_mismatch", "drum_speed_warning", "error",
           "encoded_on_board", "scan_duration_s", "tracker_rate_hz", "tracker_dropouts", "floored_windows",
-          "occluded_windows", "repeated_samples")
+          "occluded_windows")
 #: a handheld scan's measured fields (its attributes): shown per trial, and the planned duration replaced by the scan's
 HANDHELD_FIELDS = ("scan_duration_s", "tracker_rate_hz", "tracker_dropouts", "floored_windows", "occluded_windows")
 
@@ -136,7 +136,7 @@ def _trial_row(row: Any, report: Any, a: dict | None, index_row: Any) -> dict:
         t["host_rate_hz"] = _num(a.get("host_rate_hz", math.nan))
         t["dropped_frames"] = report.dropped_frames.get(tid, 0)
         t["crc_errors"] = _count(counts["crc_errors"] if index_row is not None else a.get("crc_errors", 0))
-        t["repeated_samples"] = _count(a.get("repeated_samples", 0))  # a held reading, counted when written
+        t["repeated_samples"] = report.repeated_samples.get(tid, 0)  # held readings, recounted by the validator
         t["force_mean_g"] = _num(a.get("force_mean_g", math.nan))
         t["speed_mean_mm_s"] = _num(a.get("speed_mean_mm_s", math.nan))
         t["index_source"] = str(a.get("index_source", "")) or None

@@ -488,6 +488,10 @@ def _usable_ids(s: Any, run: EncodeRun, kept: Any = None) -> tuple[list[int], di
     ids = report.ids if run.trial_ids is None else [t for t in run.trial_ids if t not in report.excluded]
     if report.excluded:
         warnings.warn(f"{run.session_path}: {report.summary()}", TrialsExcluded, stacklevel=4)
+    held = [report.repeated_samples.get(t, 0) for t in ids]  # recounted by the validator from the counts it read
+    if any(held):  # a held reading is encoded as recorded: said, like the trials' other counts
+        warnings.warn(f"{sum(held)} samples in {sum(h > 0 for h in held)} trials repeat the one before on every "
+                      "taxel (held readings, encoded as recorded; rigctl info lists them)", stacklevel=4)
     if not ids:
         raise ValueError(f"{run.session_path} has no usable complete trials"
                          + (f" ({report.summary()})" if report.excluded else ""))

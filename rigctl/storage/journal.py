@@ -256,6 +256,19 @@ def _lock(fd: int, path: object, wait_s: float) -> None:
             time.sleep(0.02)
 
 
+def open_in_place(path: str | os.PathLike[str]) -> int:
+    """A descriptor of the session file ``path`` open read-write, the file itself: a symbolic link at its name is
+    never followed (``O_NOFOLLOW``: a session swapped for a link, e.g. inside a served data folder, would send the
+    writes to the file it points to, anywhere). OSError (ELOOP) in one line for a link."""
+    try:
+        return os.open(path, os.O_RDWR | _O_BINARY | sidecars.NOFOLLOW)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP or (exc.errno == errno.EMLINK and os.path.islink(path)):
+            raise OSError(errno.ELOOP, f"{path} is a symbolic link: a session is written where it is, never through "
+                                       "a link (refused; nothing written)") from None
+        raise
+
+
 def recover(path: str | os.PathLike[str], *, wait_s: float = 10.0) -> bool:
     """Finish or discard an interrupted commit of ``path``. Returns True if a committed journal was replayed.
 
@@ -269,7 +282,7 @@ def recover(path: str | os.PathLike[str], *, wait_s: float = 10.0) -> bool:
             return False  # a link or a non-file at the journal's name is never read (nor replayed, nor removed)
     except FileNotFoundError:
         return False
-    fd = os.open(path, os.O_RDWR | _O_BINARY)
+    fd = open_in_place(path)
     try:
         _lock(fd, path, wait_s)
         if not jpath.exists():  # another process recovered it meanwhile
@@ -350,7 +363,7 @@ class OverlayFile(io.RawIOBase):
         self.path = Path(path)
         self.durable = durable
         recover(self.path, wait_s=wait_s)
-        self._fd = os.open(self.path, os.O_RDWR | _O_BINARY)
+        self._fd = open_in_place(self.path)
         try:
             _lock(self._fd, self.path, wait_s)
         except BaseException:

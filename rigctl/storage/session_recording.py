@@ -258,3 +258,26 @@ def read_rows(ds: h5py.Dataset, starts: np.ndarray, lengths: np.ndarray, out: np
         if hi > lo:
             ds.read_direct(out, np.s_[lo:hi], np.s_[pos:pos + hi - lo])
         pos += hi - lo
+
+
+def rows_by_trial(f: h5py.File, name: str, dtype: np.dtype[Any]) -> dict[int, np.void]:
+    """Trial id -> its row of the per-trial table ``/recording/<name>`` (the trial facts, the seal) when that is the
+    documented 1-d table of ``dtype``; ``{}`` otherwise or on a read error. A trial listed more than once gets none
+    (which row is its is ambiguous)."""
+    try:
+        ds = f[GROUP].get(name)
+        if not isinstance(ds, h5py.Dataset) or ds.dtype != dtype or ds.ndim != 1:
+            return {}
+        table = ds[()]
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError):
+        return {}
+    out: dict[int, np.void] = {}
+    seen: set[int] = set()
+    for row in table:
+        tid = int(row["trial_id"])
+        if tid in seen:
+            out.pop(tid, None)
+        else:
+            out[tid] = row
+        seen.add(tid)
+    return out

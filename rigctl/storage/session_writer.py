@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import errno
 import json
 import logging
 import os
@@ -20,7 +21,7 @@ from rigctl.core.provenance import RESUMED_ATTR
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_labels
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
-from rigctl.storage import h5objects, journal, session_recording, sidecars, trial_facts
+from rigctl.storage import h5objects, journal, session_recording, sidecars, trial_facts, trial_seal
 from rigctl.storage.onboard_group import ONBOARD_ATTR, write_onboard
 from rigctl.storage.outputs import check_replaceable
 from rigctl.storage.session_create import (
@@ -81,6 +82,7 @@ def _writing(path: Path, *, durable: bool = True, wait_s: float = 10.0) -> Itera
             # schema 4's trial facts stay only if nobody wrote since the last commit (stat under the lock)
             stamp = trial_facts.begin_commit(f, trial_facts.mtime_ns(path))
             yield f
+            trial_seal.store_root(f)  # the result-changing root attributes as this commit leaves them
         finally:
             f.close()
         try:
@@ -218,6 +220,8 @@ class SessionWriter:
             self._plan["status"] = before  # nothing of this write reached the file
             done = self.completed_ids()
             intact = (f"trials {_id_ranges(done)} are intact" if done else "no trial was complete before")
+            if exc.errno == errno.ELOOP:  # a link at the session's name (journal.open_in_place): refused as it is
+                raise SessionWriteError(f"{exc.strerror or exc}; {intact}", exc.errno, done) from None
             what = _os_error_text(exc)
             hint = ("free space and --resume" if what == "no space left on device" else
                     "make it writable (or copy it to a writable place) and --resume")
@@ -483,6 +487,8 @@ class SessionWriter:
                     taxels, rows = session_recording.append_trials(f, views, views=self._views,
                                                                    stacked=self._batch.stacked())
                     trial_facts.append(f, rows, [d for _, _, d in views], known)
+                    trial_seal.append(f, rows, [d for _, _, d in views],
+                                      [self._plan[self._row_index(tid)] for _, tid, _ in views])
                     for tax, (_, _, data) in zip(taxels, views):
                         self._taxels_attrs(tax, data)
                 if written:  # the plan's statuses last, in one write of the span they cover (only the status

@@ -7,7 +7,7 @@ A block's trials are stored back to back: trial ``i`` is rows ``pos[i]:pos[i + 1
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -91,20 +91,53 @@ class Block:
     starts: np.ndarray
     bad: list[str | None]
     failed: dict[int, str]
+    #: of each trial read: the SHA-256 of its other recording arrays (:func:`rigctl.storage.trial_seal
+    #: .arrays_digest`) where it has a seal row to meet, else None
+    sealed_arrays: list[bytes | None] = field(default_factory=list)
 
 
 #: (seq gaps per trial read, counts all inside the ADC range, SHA-256 of each read trial's taxels that has a sealed
-#: checksum to meet, else None, each read trial's per-taxel (minimum, maximum) or None: empty or unreadable)
-Sums = tuple[np.ndarray, bool, list[bytes | None], list[np.ndarray | None]]
+#: checksum to meet, else None, each read trial's per-taxel (minimum, maximum) or None: empty or unreadable, each
+#: read trial's repeated samples: rows identical on every taxel to the one before, recounted from the counts read)
+Sums = tuple[np.ndarray, bool, list[bytes | None], list[np.ndarray | None], np.ndarray]
 
 
-def read_entries(rec: Any, block: list[Entry]) -> Block:
+def read_entries(rec: Any, block: list[Entry], sealed: list[bool] | None = None) -> Block:
     """Read a block's trials (those without facts used instead of their samples) together (:func:`read_block`)
-    from ``rec``, the file's ``/recording`` group."""
+    from ``rec``, the file's ``/recording`` group; ``sealed``: per entry, whether it has a seal row whose arrays'
+    checksum it must meet (:mod:`rigctl.storage.trial_seal`: those arrays are read and hashed too)."""
     read = [r for _, r, q, _, _ in block if q is None]
     seq, tax, pos, bad, failed = read_block(rec, read, int(rec["taxels"].shape[1]))
     starts = np.array([int(r["sample_start"]) for r in read], dtype=np.int64)
-    return Block(block, seq, tax, pos, starts, bad, failed)
+    blk = Block(block, seq, tax, pos, starts, bad, failed)
+    want = [w for (_, _, q, _, _), w in zip(block, sealed or [False] * len(block)) if q is None]
+    blk.sealed_arrays = _sealed_digests(rec, read, want, failed) if any(want) else [None] * len(read)
+    return blk
+
+
+def _sealed_digests(rec: Any, rows: list[np.void], want: list[bool], failed: dict[int, str]) -> list[bytes | None]:
+    """:func:`rigctl.storage.trial_seal.arrays_digest` of each trial of ``rows`` that ``want`` marks (its arrays
+    read together, one read per array and run of trials), None for the others and the unreadable."""
+    from rigctl.storage.session_recording import STORED_DTYPES
+    from rigctl.storage.trial_seal import SEALED_ARRAYS, arrays_digest
+
+    prefix = {name: "sample" for name in ("seq", "flags", "host_time_s")}
+    prefix.update({name: p for v, t, p in TRACES for name in (v, t)})
+    parts: list[list[np.ndarray]] = [[] for _ in rows]
+    try:
+        for name in SEALED_ARRAYS:
+            start_f, n_f = f"{prefix[name]}_start", "n_samples" if prefix[name] == "sample" else f"n_{prefix[name]}"
+            take = [i for i, w in enumerate(want) if w and i not in failed]
+            starts = np.array([int(rows[i][start_f]) for i in take], dtype=np.int64)
+            lengths = np.array([int(rows[i][n_f]) for i in take], dtype=np.int64)
+            pos = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+            buf = np.empty(int(pos[-1]), dtype=STORED_DTYPES[name])
+            read_rows(rec[name], starts, lengths, buf)
+            for k, i in enumerate(take):
+                parts[i].append(buf[pos[k]:pos[k + 1]])
+    except READ_ERRORS:
+        return [None] * len(rows)
+    return [arrays_digest(p) if w and i not in failed else None for i, (p, w) in enumerate(zip(parts, want))]
 
 
 def block_sums(blk: Block, adc_max: int) -> Sums:
@@ -123,7 +156,22 @@ def block_sums(blk: Block, adc_max: int) -> Sums:
         extremes.append(np.stack(column_extremes(blk.tax[a:b])).astype(blk.tax.dtype) if readable else None)
     # every count read is inside the range (uint16: never below 0), from the trials' maxima: no pass of its own
     in_range = all(int(x[1].max()) <= adc_max for x in extremes if x is not None)
-    return gaps, in_range, digests, extremes
+    return gaps, in_range, digests, extremes, block_repeated(blk.tax, blk.pos)
+
+
+def block_repeated(tax: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """:func:`rigctl.core.trial.repeated_samples` of every trial of a block stored back to back (trial ``i`` is
+    ``tax[pos[i]:pos[i + 1]]``): rows identical on every channel to the row before within the trial; (n_trials,)
+    int64 (0 for one channel)."""
+    n = max(int(np.asarray(pos).size) - 1, 0)
+    if tax.ndim != 2 or tax.shape[1] < 2 or tax.shape[0] < 2:
+        return np.zeros(n, dtype=np.int64)
+    same = np.all(tax[1:] == tax[:-1], axis=1)  # row k + 1 repeats row k
+    c = np.concatenate([[0], np.cumsum(same, dtype=np.int64)])
+    lo, hi = np.asarray(pos[:-1], np.int64), np.asarray(pos[1:], np.int64)
+    # pairs (k, k + 1) with both rows inside the trial: k from lo to hi - 2
+    top = c.size - 1  # (an empty trial at the block's end starts past the last pair: clipped, counted 0)
+    return np.where(hi - lo >= 2, c[np.clip(hi - 1, 0, top)] - c[np.clip(lo, 0, top)], 0).astype(np.int64)
 
 
 

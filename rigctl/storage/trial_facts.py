@@ -214,23 +214,7 @@ def trusted_facts(f: h5py.File, attrs: Any, file_mtime_ns: int | None) -> dict[i
     Read errors give ``{}`` (the validator then reads the samples and names the damage)."""
     if not is_sealed(attrs, file_mtime_ns):
         return {}
-    try:
-        ds = f[GROUP].get(FACTS)
-        if not isinstance(ds, h5py.Dataset) or ds.dtype != FACTS_DTYPE or ds.ndim != 1:
-            return {}
-        table = ds[()]
-    except (OSError, KeyError, ValueError, TypeError, RuntimeError):
-        return {}
-    out: dict[int, np.void] = {}
-    seen: set[int] = set()
-    for row in table:
-        tid = int(row["trial_id"])
-        if tid in seen:
-            out.pop(tid, None)
-        else:
-            out[tid] = row
-        seen.add(tid)
-    return out
+    return session_recording.rows_by_trial(f, FACTS, FACTS_DTYPE)
 
 
 def aligned(facts: dict[int, np.void], ids: Sequence[int], index_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -63,6 +63,7 @@ import numpy as np
 
 from rigctl.core.buffers import zeroed
 from rigctl.core.progress import ProgressCallback, Stage
+from rigctl.core.trial import repeated_samples
 from rigctl.storage.onboard_group import onboard_samples
 from rigctl.storage.outputs import size_text
 from rigctl.storage.session_format import SessionError, TrialStatus, trial_group_name
@@ -82,6 +83,7 @@ from rigctl.storage.trial_facts import (
     sha256,
     taxels_print,
 )
+from rigctl.storage.trial_seal import describes, foreign_problem, plan_digest, read_seal
 
 __all__ = ["BESIDE_BYTES", "KEEP_HINT", "MAX_RATE_HZ", "MAX_TRIAL_S", "Beside", "KeptTaxels", "TrialReport", "TrialsExcluded",
            "block_seq_gaps", "check_beside", "length_bounds", "max_count", "precheck", "seq_gaps", "usable_trials"]
@@ -121,6 +123,9 @@ class TrialReport:
     dropped_frames: dict[int, int] = field(default_factory=dict)
     nonfinite: dict[int, str] = field(default_factory=dict)
     taxel_extremes: dict[int, np.ndarray] = field(default_factory=dict)
+    #: usable trial id -> its repeated samples (rows identical on every taxel to the one before: a held reading),
+    #: recounted from the counts read, never taken from a stored attribute; absent: 0
+    repeated_samples: dict[int, int] = field(default_factory=dict)
 
     def summary(self) -> str:
         """One line: how many complete trials are usable and which were excluded (first three reasons)."""
@@ -218,7 +223,9 @@ def usable_trials(session: Session, *, keep_nonfinite: bool = False,
                              excluded=dict(sorted(excluded.items(), key=lambda kv: order.get(kv[0], 0))),
                              dropped_frames={t: d for t, d in full.dropped_frames.items()
                                              if t not in full.nonfinite},
-                             nonfinite=dict(full.nonfinite), taxel_extremes=full.taxel_extremes)
+                             nonfinite=dict(full.nonfinite), taxel_extremes=full.taxel_extremes,
+                             repeated_samples={t: n for t, n in full.repeated_samples.items()
+                                               if t not in full.nonfinite})
     session.trial_reports[key] = report
     for tid, why in report.excluded.items():  # one line per trial, each command the same
         session._problem(f"{session.path}: trial {tid} is damaged: {why}; its data are not used (excluded)")
@@ -329,10 +336,12 @@ def _check_session(session: Session, progress: ProgressCallback | None, kept: Ke
         copies = _Copies()
         for k, tid in enumerate(ids):
             try:
-                why, dropped, bad = _check_trial(session, tid, plan[tid], rate, copies)
+                why, dropped, bad, held = _check_trial(session, tid, plan[tid], rate, copies)
             except (SessionError, KeyError) as exc:
-                why, dropped, bad = _reason(exc, tid), 0, None
+                why, dropped, bad, held = _reason(exc, tid), 0, None, 0
             _record(report, tid, why, dropped, bad)
+            if why is None and held:
+                report.repeated_samples[tid] = held
             if k % 64 == 63:
                 stage.advance(64)
     stage.advance(len(ids) - stage.done)
@@ -343,8 +352,18 @@ def _recording_problem(session: Session) -> str | None:
     """Schema 4: what makes every trial unusable in the recording arrays themselves (a type or shape other than
     the documented one), or None."""
     from rigctl.storage.session_recording import STORED_DTYPES
+    from rigctl.storage.trial_seal import SEAL, foreign_problem, root_problem
 
-    rec = session._f[GROUP]
+    f = session._f
+    rec = f[GROUP]
+    for parent, name, where in ((f, "plan", "/plan"), (f, GROUP, f"/{GROUP}"),
+                                *((rec, n, f"/{GROUP}/{n}") for n in (*STORED_DTYPES, "index", "facts", SEAL))):
+        why = foreign_problem(parent, name, where)  # data of another file are not the session's (issue 77 item 6)
+        if why:
+            return why
+    why = root_problem(f)
+    if why:
+        return why
     for name, dt in STORED_DTYPES.items():
         ds = rec.get(name)
         if not isinstance(ds, h5py.Dataset):
@@ -371,32 +390,37 @@ def _count(attrs: dict[str, Any], name: str) -> int:
 
 
 def _check_trial(session: Session, tid: int, row: Any, rate: float, copies: "_Copies"
-                 ) -> tuple[str | None, int, str | None]:
-    """(reason or None, frames missing by the seq column, non-finite readings or None) for one complete trial of
-    a file with one group of datasets per trial (schema 1-3)."""
+                 ) -> tuple[str | None, int, str | None, int]:
+    """(reason or None, frames missing by the seq column, non-finite readings or None, repeated samples recounted)
+    for one complete trial of a file with one group of datasets per trial (schema 1-3)."""
     why = _check_duration(row)
     if why:
-        return why, 0, None
+        return why, 0, None, 0
+    for name in ("taxels", "seq", "flags", "host_time_s", *_TRACE_NAMES):  # data of another file: not the trial's
+        foreign = foreign_problem(session._f[trial_group_name(tid)], name, f"{trial_group_name(tid)}/{name}")
+        if foreign:
+            return foreign, 0, None, 0
     attrs = session.trial_attrs(tid)  # shape checks (SessionError names the problem)
     g = session._f[trial_group_name(tid)]
     taxels = g["taxels"]
     n = int(taxels.shape[0])
     why = _too_long(float(row["duration_s"]), rate, n) or _too_big(session, taxels, n)
     if why:
-        return why, 0, None
+        return why, 0, None, 0
     def load() -> np.ndarray:
         return np.asarray(taxels[()])
 
     n, why = _encoded_samples(session, tid, n)
     if why:
-        return why, 0, None
+        return why, 0, None, 0
     why, dropped = _check_data(float(row["duration_s"]), rate, n, seq_gaps(np.asarray(g["seq"][()])),
                                _count(attrs, "dropped_frames"), _count(attrs, "crc_errors"),
                                lambda: _check_counts(session, load(), tid, copies, load))
-    bad = None
+    bad, held = None, 0
     if why is None:
         bad = _nonfinite_text({name: np.asarray(g[name][()]) for name in _TRACE_NAMES})
-    return why, dropped, bad
+        held = repeated_samples(load())
+    return why, dropped, bad, held
 
 
 def _check_duration(row: Any) -> str | None:
@@ -572,6 +596,16 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
     # or whose stored chunk cannot be read is excluded by itself, named
     known = np.zeros(len(todo), dtype=bool)
     entries: list[Entry] = [(tid, r, None, False, facts[i] if trusted[i] else None) for i, (tid, r) in enumerate(todo)]
+    # the seal of everything else the analysis reads (trial_seal): compared whether or not the modification time
+    # still holds, as a plain edit moves it
+    seals = read_seal(session._f)
+    sealed = [tid in seals and describes(seals[tid], r) for tid, r in todo]
+    for k, (tid, _) in enumerate(todo):  # the taxels met against the seal's checksum where no trusted facts row is
+        if entries[k][4] is None and sealed[k]:
+            row = np.zeros(1, dtype=facts.dtype)[0]
+            row["taxels_sha256"] = seals[tid]["taxels_sha256"]
+            entries[k] = (*entries[k][:4], row)
+    seals = {tid: seals[tid] for k, (tid, _) in enumerate(todo) if sealed[k]}
     spans: list[tuple[int, int]] = []
     k = 0
     while k < len(todo):
@@ -587,14 +621,14 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
     with ThreadPoolExecutor(1, thread_name_prefix="rigctl-validate") as pool:
         pending: tuple[Block, Future[Sums], int] | None = None
         for k, j in spans:
-            blk = read_entries(session._f[GROUP], entries[k:j])
+            blk = read_entries(session._f[GROUP], entries[k:j], sealed[k:j])
             sums = pool.submit(block_sums, blk, adc_max)
             if pending is not None:
-                _judge_block(session, pending[0], pending[1].result(), plan, rate, report, copies, kept)
+                _judge_block(session, pending[0], pending[1].result(), plan, rate, report, copies, kept, seals)
                 stage.advance(pending[2])
             pending = (blk, sums, j - k)
         if pending is not None:
-            _judge_block(session, pending[0], pending[1].result(), plan, rate, report, copies, kept)
+            _judge_block(session, pending[0], pending[1].result(), plan, rate, report, copies, kept, seals)
             stage.advance(pending[2])
     order = {t: i for i, t in enumerate(ids)}  # the report in plan order, as for older files
     report.ids.sort(key=order.__getitem__)
@@ -602,12 +636,13 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
 
 
 def _judge_block(session: Session, blk: Block, sums: Sums, plan: dict[int, Any], rate: float,
-                 report: TrialReport, copies: "_Copies", kept: KeptTaxels | None = None) -> None:
+                 report: TrialReport, copies: "_Copies", kept: KeptTaxels | None = None,
+                 seals: dict[int, np.void] | None = None) -> None:
     """:func:`_check_data` of a block's trials in order: those with facts on them, the others on their samples
     (read in :func:`read_entries`, summed in :func:`block_sums`); each usable trial's taxels handed to ``kept``."""
     taxels_ds = session._f[GROUP]["taxels"]
     n_ch = int(taxels_ds.shape[1])
-    gaps, in_range, digests, extremes = sums
+    gaps, in_range, digests, extremes, repeated = sums
     tax, pos, failed = blk.tax, blk.pos, blk.failed
     i = 0  # the next trial read
     for tid, r, q, nonfinite, sealed in blk.entries:
@@ -620,10 +655,8 @@ def _judge_block(session: Session, blk: Block, sums: Sums, plan: dict[int, Any],
             _record(report, tid, why, dropped, facts_nonfinite_text(q) if nonfinite else None)
             continue
         a, b = int(pos[i]), int(pos[i + 1])
-        if i in failed or (sealed is not None and digests[i] is not None
-                           and digests[i] != bytes(sealed["taxels_sha256"])):
-            _record(report, tid, failed.get(i) or "its stored taxels differ from the checksum sealed with them when "
-                                                  "they were recorded (changed since)", 0)
+        if i in failed:
+            _record(report, tid, failed[i], 0)
             i += 1
             continue
         data, load = tax[a:b], functools.partial(_read_trial, taxels_ds, int(blk.starts[i]), b - a)
@@ -631,7 +664,16 @@ def _judge_block(session: Session, blk: Block, sums: Sums, plan: dict[int, Any],
         why, dropped = (why, 0) if why else _check_data(duration, rate, n, int(gaps[i]), said, crc,
                                                         functools.partial(_check_counts, session, data, tid, copies,
                                                                           load, in_range))
+        changed = ("its stored taxels differ from the checksum sealed with them when they were recorded (changed "
+                   "since)" if sealed is not None and digests[i] is not None
+                   and digests[i] != bytes(sealed["taxels_sha256"]) else None)
+        changed = changed or _seal_problem((seals or {}).get(tid), blk.sealed_arrays[i], plan[tid])
+        if changed:  # excluded whatever else it holds; what reading it finds besides is said with it
+            detail = why or blk.bad[i]
+            why = changed + (f": {detail}" if detail else "")
         _record(report, tid, why, dropped, blk.bad[i])
+        if why is None and repeated[i]:
+            report.repeated_samples[tid] = int(repeated[i])
         if kept is not None and why is None:
             kept.take(tid, data)
         ext = extremes[i]
@@ -639,6 +681,19 @@ def _judge_block(session: Session, blk: Block, sums: Sums, plan: dict[int, Any],
             report.taxel_extremes[tid] = ext
         i += 1
 
+
+def _seal_problem(seal: np.void | None, arrays: bytes | None, plan_row: Any) -> str | None:
+    """What of a trial differs from its seal row (:mod:`rigctl.storage.trial_seal`): its other recording arrays'
+    checksum (``arrays``: as read, None when it has no seal row to meet) or its plan row's labels; None."""
+    if seal is None:
+        return None
+    if arrays is not None and arrays != bytes(seal["arrays_sha256"]):
+        return ("its seq, flags, host times or force / speed traces differ from the checksum sealed with them when "
+                "they were recorded (changed since)")
+    if plan_digest(plan_row) != bytes(seal["plan_sha256"]):
+        return ("its /plan labels (texture, speed, force, duration, ...) differ from those sealed when it was "
+                "recorded (changed since)")
+    return None
 
 
 def _read_trial(ds: Any, start: int, n: int) -> np.ndarray:

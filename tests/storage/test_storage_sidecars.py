@@ -17,6 +17,7 @@ from rigctl.acquisition.rigconfig import save_rig_config
 from rigctl.storage import journal
 from rigctl.storage.outputs import OutputError, output_file, replacing
 from rigctl.storage.session import SessionWriter, TrialData, open_session
+from rigctl.storage.session_format import SessionWriteError
 from rigctl.storage.sidecars import SidecarExists, write_small_file
 
 PLAN = [dict(trial_id=i, texture="AB"[i % 2], speed_mm_s=40.0, force_g=500.0, duration_s=0.1) for i in range(2)]
@@ -177,3 +178,26 @@ def test_small_files_are_written_through_a_sidecar_of_a_random_name(tmp_path, vi
     assert sorted(os.listdir(tmp_path)) == ["elsewhere", "rig.json", "rig.json.tmp"]
     write_small_file(tmp_path / "t.token", b"secret", mode=0o600, exact_mode=True)
     assert (tmp_path / "t.token").stat().st_mode & 0o777 == 0o600
+
+
+def test_a_session_swapped_for_a_link_is_never_written_through(tmp_path):
+    """A session file swapped for a symlink (inside a served data folder held by its descriptor, or anywhere): a
+    writer resuming it opens the file itself, ``O_NOFOLLOW``, and refuses the link in one line; the session it
+    points to (outside the folder) is unchanged."""
+    PLAN3 = [*PLAN, dict(trial_id=2, texture="A", speed_mm_s=40.0, force_g=500.0, duration_s=0.1)]
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    victim = outside / "theirs.h5"
+    with SessionWriter.create(victim, plan=PLAN3, protocol_source="name = 'x'") as w:
+        w.write_trial(0, _trial(0))
+    before = _digest(victim)
+    data = tmp_path / "data"
+    data.mkdir()
+    link = data / "s1.h5"
+    link.symlink_to(victim)
+    with pytest.raises(SessionWriteError, match="is a symbolic link: a session is written where it is"):
+        with SessionWriter.open(link, protocol_source="name = 'x'") as w:
+            w.write_trial(1, _trial(1))
+    assert _digest(victim) == before and link.is_symlink()
+    with open_session(victim) as s:
+        assert s.completed_ids() == [0]
