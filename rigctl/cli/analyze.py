@@ -103,7 +103,8 @@ def _length_warning(path) -> None:
             trials = f.trials
     except (NotEncodedError, OSError, ValueError, KeyError):
         return
-    line = length_imbalance(trials["texture"], trials["duration_s"])
+    line = length_imbalance(trials["texture"], trials["duration_s"], speed_mm_s=trials.get("speed_mm_s"),
+                            force_g=trials.get("force_g"))
     if line:
         click.echo(f"warning: {path}: {line}", err=True)
 

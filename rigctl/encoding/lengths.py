@@ -18,29 +18,48 @@ __all__ = ["LENGTH_TOLERANCE", "length_imbalance", "crop_samples"]
 LENGTH_TOLERANCE = 0.05
 
 
-def length_imbalance(texture: np.ndarray, duration_s: np.ndarray, *, tolerance: float = LENGTH_TOLERANCE
-                     ) -> str | None:
+def length_imbalance(texture: np.ndarray, duration_s: np.ndarray, *, tolerance: float = LENGTH_TOLERANCE,
+                     speed_mm_s: np.ndarray | None = None, force_g: np.ndarray | None = None) -> str | None:
     """One line naming the textures whose median trial duration (s) differs from the others' by more than
-    ``tolerance`` of the longest, with the crop that removes it (``--crop-s``: the shortest trial), or None.
+    ``tolerance`` of the longest **at the same speed and force** (like with like: durations that differ only with
+    the mix of conditions each texture was recorded at, as FabricSlide's do, are no label in the length), with the
+    crop that removes it (``--crop-s``: the shortest trial of that condition) and what the crop costs, or None.
 
-    texture : (n_trials,) labels; duration_s : (n_trials,) s (NaN entries ignored)."""
+    texture : (n_trials,) labels; duration_s : (n_trials,) s (NaN entries ignored); speed_mm_s, force_g : (n_trials,)
+    each trial's condition (None: one condition for all)."""
     tex = np.asarray(texture).astype(str)
     dur = np.asarray(duration_s, np.float64)
+    n = tex.size
+    # each trial's condition (an unlabelled speed or force, NaN, is a condition of its own: -1)
+    cond_v = np.nan_to_num(np.round(np.asarray(speed_mm_s, np.float64), 3), nan=-1.0) if speed_mm_s is not None \
+        else np.zeros(n)
+    cond_f = np.nan_to_num(np.round(np.asarray(force_g, np.float64), 3), nan=-1.0) if force_g is not None \
+        else np.zeros(n)
     ok = np.isfinite(dur) & (dur > 0)
-    if ok.sum() < 2:
+    worst: tuple[float, dict[str, float], np.ndarray, str] | None = None
+    for v, f in sorted({(float(a), float(b)) for a, b in zip(cond_v[ok], cond_f[ok])}):
+        cell = ok & (cond_v == v) & (cond_f == f)
+        labels = np.unique(tex[cell])
+        if labels.size < 2:
+            continue
+        med = {str(t): float(np.median(dur[cell & (tex == t)])) for t in labels}
+        lo, hi = min(med.values()), max(med.values())
+        spread = (hi - lo) / hi
+        if hi - lo > tolerance * hi and (worst is None or spread > worst[0]):
+            where = ("" if speed_mm_s is None and force_g is None else
+                     f" at the same speed and force ({v:g} mm/s, {f:g} g)")
+            worst = (spread, med, cell, where)
+    if worst is None:
         return None
-    labels = np.unique(tex[ok])
-    med = {str(t): float(np.median(dur[ok & (tex == t)])) for t in labels}
-    lo, hi = min(med.values()), max(med.values())
-    if len(med) < 2 or hi - lo <= tolerance * hi:
-        return None
+    _, med, cell, where = worst
     order = sorted(med, key=lambda t: med[t])
     shown = ", ".join(f"{t} {med[t]:.2f} s" for t in (order[:3] + ["..."] + order[-2:] if len(order) > 5 else order)
                       if t != "...") + (" ..." if len(order) > 5 else "")
-    crop = math.floor(float(dur[ok].min()) * 100) / 100
-    return (f"trial durations differ by texture (median: {shown}): features sized to the longest trial leave the "
-            "shorter ones' last windows empty, a label a classifier can read off the padding; crop every trial to a "
-            f"common length: rigctl encode --crop-s {crop:g}")
+    crop = math.floor(float(dur[cell].min()) * 100) / 100
+    return (f"trial durations differ by texture (median: {shown}){where}: features sized to the longest trial leave "
+            "the shorter ones' last windows empty, a label a classifier can read off the padding; rigctl encode "
+            f"--crop-s {crop:g} cuts every trial to a common length but drops what the longer ones hold after it: "
+            "compare the analysis with and without the crop before choosing")
 
 
 def crop_samples(crop_s: float | None, rate_hz: float) -> int | None:

@@ -349,7 +349,8 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     p = replace(params) if params is not None else EncodeParams()
     t_start = time.time()
     read = _range_pass(run, p, progress)  # pass 1: labels, per-taxel range, the model input kept for the fit
-    imbalance = length_imbalance(read.labels["texture"], read.duration_s)
+    imbalance = length_imbalance(read.labels["texture"], read.duration_s, speed_mm_s=read.labels["speed_mm_s"],
+                                 force_g=read.labels["force_g"])
     if imbalance:  # a label hidden in the trial length (rigctl.encoding.lengths)
         warnings.warn(f"{run.session_path}: {imbalance}", stacklevel=2)
     variants_, skipped = _check_speeds(run.variants, run.explicit, read.labels, read.has_trace)

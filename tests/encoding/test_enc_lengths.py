@@ -42,6 +42,24 @@ def test_length_imbalance_by_texture():
     assert length_imbalance(tex, np.r_[[8.0] * 4, [7.9] * 4]) is None  # within 5 %
 
 
+def test_durations_are_compared_at_the_same_speed_and_force():
+    """FabricSlide's case (issue 77 item 7): durations differ by texture only through the mix of conditions each
+    was recorded at (A mostly slow and long, B mostly fast and short): nothing to say, where the pooled medians
+    warned and advised a crop that flipped the paper's result. A real difference within one condition is named
+    with that condition, and the crop is never advised without its cost."""
+    tex = np.array(["A"] * 4 + ["B"] * 4)
+    speed = np.r_[[40.0] * 3, [120.0], [40.0], [120.0] * 3]
+    dur = np.where(speed == 40.0, 9.0, 3.0)  # the duration is the speed's, not the texture's
+    force = np.full(8, 500.0)
+    assert length_imbalance(tex, dur) is not None  # pooled: A 9 s, B 3 s
+    assert length_imbalance(tex, dur, speed_mm_s=speed, force_g=force) is None
+    dur2 = dur.copy()
+    dur2[(tex == "B") & (speed == 120.0)] = 2.0
+    line = length_imbalance(tex, dur2, speed_mm_s=speed, force_g=force)
+    assert line is not None and "(median: B 2.00 s, A 3.00 s) at the same speed and force (120 mm/s, 500 g)" in line
+    assert "--crop-s 2 cuts every trial" in line and "compare the analysis with and without the crop" in line
+
+
 def test_encode_warns_and_crops_and_analyze_names_what_sets_the_sample_size(tmp_path):
     session = _session(tmp_path / "s.h5", {"A": (6, 600), "B": (10, 800)})
     rc, out = _run("encode", session, "--out", tmp_path / "e.h5", "--no-progress", "--variant", "original")
