@@ -23,7 +23,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["GROUPINGS", "parse_cv_groups", "cv_groups", "one_recording_per_texture", "check_groups"]
+__all__ = ["GROUPINGS", "parse_cv_groups", "cv_groups", "one_recording_per_texture", "check_groups", "checked_groups",
+           "degenerate_groups"]
 
 #: what ``--cv-groups`` may say
 GROUPINGS = ("recording", "session", "block:N")
@@ -95,3 +96,29 @@ def check_groups(texture: np.ndarray, groups: np.ndarray, k: int, spec: str) -> 
     n = np.unique(groups).size
     if n < k:
         raise ValueError(f"--cv-groups {spec}: {n} groups cannot fill {k} folds")
+
+
+def degenerate_groups(fs: Any, spec: str, groups: np.ndarray) -> str | None:
+    """One line when ``groups`` (:func:`cv_groups` of ``spec``) are not what ``spec`` asks (issue 77 item 7): with
+    ``block:N``, recordings of fewer than N trials cannot be cut into N blocks (one file per trial: each trial is
+    its own block, which is ``--cv-groups recording``), said with how many; None when the grouping is as asked."""
+    kind, blocks = parse_cv_groups(spec)
+    if kind != "block":
+        return None
+    rec, _ = _recordings(fs)
+    names, sizes = np.unique(rec, return_counts=True)
+    short = int(np.count_nonzero(sizes < blocks))
+    if not short:
+        return None
+    whole = " (one file per trial?): every block is a whole recording, as --cv-groups recording holds them out" \
+        if short == names.size and int(sizes.max()) == 1 else ": their blocks are fewer and hold whole recordings"
+    return (f"--cv-groups {spec}: {short} of {names.size} recordings hold fewer than {blocks} trials{whole}; "
+            f"{np.unique(groups).size} groups for {len(groups)} trials, not {blocks} time blocks of each recording")
+
+
+def checked_groups(fs: Any, spec: str, k: int) -> tuple[np.ndarray, str | None]:
+    """:func:`cv_groups` of ``spec`` checked for ``k`` folds (:func:`check_groups`: ValueError) and the line of
+    :func:`degenerate_groups` (None when the grouping is as asked)."""
+    groups = cv_groups(fs, spec)
+    check_groups(fs.texture, groups, k, spec)
+    return groups, degenerate_groups(fs, spec, groups)

@@ -144,8 +144,7 @@ def run_cv(
     execution : :class:`rigctl.analysis.params.Execution`
         Where the repetitions run (``n_jobs``, ``scheduler``, ``workers``); the results do not depend on it.
     progress : callable, optional
-        Receives :class:`rigctl.core.progress.ProgressEvent` s (stage ``"textures/groups"``, done/total = PCA fits,
-        reported per finished repetition).
+        Receives :class:`rigctl.core.progress.ProgressEvent` s (stage ``"textures/groups"``, per finished repetition).
     **overrides
         Fields of the three objects as keywords (e.g. ``repeats=5``).
 
@@ -163,12 +162,11 @@ def run_cv(
     params, reps, execution = resolve(overrides, params or CVParams(), reps or Repetitions(),
                                       execution or Execution())
     per_texture, k = params.per_texture, params.k
-    groups = None
+    groups, note = None, None
     if params.groups:
-        from rigctl.analysis.grouping import check_groups, cv_groups
+        from rigctl.analysis.grouping import checked_groups
 
-        groups = cv_groups(fs, params.groups)
-        check_groups(fs.texture, groups, k, params.groups)
+        groups, note = checked_groups(fs, str(params.groups), k)  # note: a grouping not what was asked, said below
     variants, n_pcs, repeats, seed, confusion_pcs = (reps.variants, reps.n_pcs, reps.repeats, reps.seed,
                                                      reps.confusion_pcs)
     n_jobs, scheduler, workers = execution.n_jobs, execution.scheduler, execution.workers
@@ -179,6 +177,8 @@ def run_cv(
         fs.require_groups()  # GroupsError: the file's texture set defines no groups
     vs = _variants(fs, variants)
     res = TaskResults()
+    if groups is not None and note:
+        _warn(res, note)
     textures, counts = np.unique(fs.texture, return_counts=True)
     n_draw = int(min(per_texture, counts.min()))
     if n_draw < k:

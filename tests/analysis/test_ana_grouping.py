@@ -142,3 +142,19 @@ def test_analyze_subsets_counts_and_skips(tmp_path, write_schema1):
     out = json.loads(r.stdout)
     assert "textures" in out["tasks"] and any(w.startswith("extrapolation skipped: the trained cell")
                                                for w in out["warnings"])
+
+
+def test_a_block_grouping_of_one_file_per_trial_says_it_degenerates():
+    """--cv-groups block:4 on one-file-per-trial data made each trial its own group silently (issue 77 item 7): the
+    result is a recording-grouped split, said so in the results' warnings; a real block grouping says nothing."""
+    from rigctl.analysis.grouping import degenerate_groups
+
+    fs = drifting(8, trials=1)  # 8 one-trial recordings per texture
+    groups = cv_groups(fs, "block:4")
+    assert np.unique(groups).size == fs.n_trials
+    note = degenerate_groups(fs, "block:4", groups)
+    assert note is not None and "24 of 24 recordings hold fewer than 4 trials (one file per trial?)" in note, note
+    _, res = accuracy(fs, "block:4")
+    assert any("one file per trial?" in w for w in res.warnings), res.warnings
+    whole = drifting(1)
+    assert degenerate_groups(whole, "block:4", cv_groups(whole, "block:4")) is None
