@@ -9,15 +9,25 @@ their own). Calls the public functions with the input types the library and its 
 readings; float32 and float64 state), so the signatures follow the code; a kernel missed here is still compiled on
 first use, only slower.
 
-    python scripts/compile_kernels.py [serial|parallel ...]   (no part: both, one after the other)
+    python scripts/compile_kernels.py [--if-stale] [serial|parallel ...]   (no part: both, one after the other)
+
+Each part compiled leaves a stamp in the cache folder (``rigctl-kernels-<part>``: the digest of rigctl's modules that
+cache kernels and of the interpreter's version); ``--if-stale`` compiles only the parts whose stamp is not the
+current one, and otherwise imports nothing of rigctl's (tests/conftest.py runs it so at every test session's start:
+a module run as the README says then never compiles the kernels inside a test's timeout, issue 79 item 7).
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
 
 #: the parts that can compile side by side (``python scripts/compile_kernels.py PART``): disjoint sets of kernels, so
 #: two processes never write the same kernel's cache index at once (one kernel's signatures share one index):
@@ -75,16 +85,42 @@ def compile_parallel() -> None:
     izhikevich.encode(np.full((1, 64, 2), 0.5), k=100.0)
 
 
+def sources_digest() -> str:
+    """The digest of rigctl's modules that cache numba kernels (``cache=True``) and of the interpreter's version."""
+    h = hashlib.sha256(sys.version.encode())
+    for path in sorted((REPO / "rigctl").rglob("*.py")):
+        text = path.read_bytes()
+        if b"cache=True" in text:
+            h.update(path.relative_to(REPO).as_posix().encode() + b"\0" + text)
+    return h.hexdigest()
+
+
+def _stamp(part: str) -> Path:
+    """The part's stamp in numba's cache folder (rigctl's choice of it: ``rigctl.core.caches.numba_cache_dir``)."""
+    from rigctl.core.caches import numba_cache_dir
+
+    return numba_cache_dir() / f"rigctl-kernels-{part}"
+
+
 def main(argv: list[str]) -> int:
-    parts = argv or list(PARTS)
+    if_stale = "--if-stale" in argv
+    parts = [a for a in argv if a != "--if-stale"] or list(PARTS)
     if any(p not in PARTS for p in parts):
-        print(f"usage: python scripts/compile_kernels.py [{'|'.join(PARTS)}] ...", file=sys.stderr)
+        print(f"usage: python scripts/compile_kernels.py [--if-stale] [{'|'.join(PARTS)}] ...", file=sys.stderr)
         return 2
+    digest = sources_digest()
+    if if_stale:
+        parts = [p for p in parts if not (_stamp(p).is_file() and _stamp(p).read_text() == digest)]
+        if not parts:
+            return 0
     t0 = time.monotonic()
     if "parallel" in parts:  # first the taxel renderer and the mechanics every simulated rig runs
         compile_parallel()
     if "serial" in parts:
         compile_serial()
+    for p in parts:
+        os.makedirs(_stamp(p).parent, exist_ok=True)
+        _stamp(p).write_text(digest)
     print(f"numba kernels ({', '.join(parts)}) compiled into the cache in {time.monotonic() - t0:.0f} s")
     return 0
 

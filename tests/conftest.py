@@ -5,6 +5,8 @@ from __future__ import annotations
 import getpass
 import os
 import signal
+import subprocess
+import sys
 import tempfile
 import threading
 from pathlib import Path
@@ -182,6 +184,23 @@ def pytest_runtest_protocol(item, nextitem):
     with open(path, "a") as f:
         f.write(f"{item.nodeid}\t{time.monotonic() - t0:.2f}\t{cpu() - c0:.2f}\t{worker}\t{start:.1f}"
                 f"\t{tree_cpu() - tc0:.2f}\n")
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own starts the workers
+def pytest_sessionstart(session):
+    """numba's kernels compiled into the run's cache before its first test, outside every test's timeout (issue 79
+    item 7: a module run as the README says timed out at 300 s on a cold cache at load ~55, its first test compiling
+    them): scripts/compile_kernels.py's two parts side by side, each only when its stamp is stale (nothing to do on a
+    warm cache, as after scripts/test.sh's own compile). Once per run: in the controller of a parallel run."""
+    if hasattr(session.config, "workerinput") or session.config.option.collectonly:
+        return
+    script = Path(__file__).resolve().parents[1] / "scripts" / "compile_kernels.py"
+    procs = [subprocess.Popen([sys.executable, str(script), "--if-stale", part], stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True) for part in ("serial", "parallel")]
+    for proc in procs:
+        out, _ = proc.communicate()
+        if out.strip():
+            session.config.get_terminal_writer().line(out.strip().splitlines()[-1])
 
 
 #: the tiers whose tests judge against the wall clock (a live view's frame rate, LSL timing, a real pty's latency; a
