@@ -24,10 +24,14 @@ ENV_DIR = "RIGCTL_FABRICSLIDE"
 @click.option("--pattern", default="*.csv", show_default=True, help="Glob of file names to import.")
 @click.option("--trim", type=floats(0, 0.49), default=0.10, show_default=True,
               help="Fraction of each trial dropped at each end (the arm's acceleration ramps).")
+@click.option("--close-gaps", is_flag=True, help="Interpolate across gaps in a file's time stamps (declared in the "
+              "ledger); without it such a file is refused.")
+@click.option("--clip", is_flag=True, help="Pin readings the 10-bit map puts outside 0..1023 to the range (counted, "
+              "declared in the ledger); without it they are refused.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def import_fabricslide(directory, out, include_board, pattern, trim, overwrite, as_json, quiet):
+def import_fabricslide(directory, out, include_board, pattern, trim, close_gaps, clip, overwrite, as_json, quiet):
     """Import FabricSlide CSVs from DIRECTORY (the folder holding fabric/ and board/, e.g.
     ../shared/data/fabricslide beside a checkout; default $RIGCTL_FABRICSLIDE).
 
@@ -45,11 +49,16 @@ def import_fabricslide(directory, out, include_board, pattern, trim, overwrite, 
     try:
         with bars(not quiet) as progress:
             summary = run(directory, out, include_board=include_board, pattern=pattern, trim=trim,
-                          overwrite=overwrite, progress=progress)
+                          overwrite=overwrite, progress=progress, close_gaps=close_gaps, clip=clip)
     except (FileNotFoundError, FileExistsError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None
+    from rigctl.storage.ledger import ledger, ledger_lines
+
+    entries = ledger(summary.pop("steps", None) or {})  # every step that changed a value: the one ledger
     if as_json:
-        click.echo(json_text(summary))
+        click.echo(json_text({**summary, "ledger": entries}))
     else:
         click.echo(f"{summary['n_trials']} trials, 16 channels, {summary['samples'] / 1000:.0f} s at 1 kHz -> "
                    f"{summary['path']} (textures: {', '.join(summary['labels'])})")
+        for line in ledger_lines(entries):
+            click.echo(f"ledger: {line}")

@@ -123,7 +123,7 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
     stop_on_sigterm()  # a SIGTERM mid-import removes the partial session and its lock, as a Ctrl-C does
     if preset is not None and len(files) != 1:
         raise click.UsageError(f"--preset {preset} takes one FILES argument: the FabricSlide folder")
-    options = {} if preset else dict(
+    options = {k: v for k, v in (("close_gaps", close_gaps), ("clip", clip)) if v} if preset else dict(
         rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern, texture=texture,
         resample_hz=resample_hz, segment_spec=segment_spec, align=align, pre_ms=pre_ms, min_swing=min_swing,
         mapping=mapping,

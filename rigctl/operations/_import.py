@@ -74,7 +74,9 @@ def import_recordings(files: Sequence[str | os.PathLike[str]], out: str | os.Pat
             raise ValueError(f"--preset {preset} takes one FILES argument: the FabricSlide folder")
         from rigctl.storage.fabricslide import import_fabricslide
 
-        return ImportReport(import_fabricslide(Path(files[0]), Path(out), overwrite=overwrite, progress=progress))
+        return ImportReport(import_fabricslide(Path(files[0]), Path(out), overwrite=overwrite, progress=progress,
+                                               close_gaps=bool(options.get("close_gaps")),  # by name, as for files
+                                               clip=bool(options.get("clip"))))
     from rigctl.storage.importers import import_recordings as run
     from rigctl.storage.segmentation import segment_table
 

@@ -81,6 +81,8 @@ class Recording:
     repeat: int
     timestamp_ms: np.ndarray
     readings: np.ndarray
+    #: rows dropped for repeating the time stamp of the row before (the first of each kept)
+    repeated_stamps: int = 0
 
     @property
     def speed_mm_s(self) -> float:
@@ -135,7 +137,8 @@ def read_recording(path: str | Path, kind: str | None = None) -> Recording:
         raise ValueError(f"{path}: fewer than 2 distinct timestamps")
     kind = kind or ("board" if labels["label"].lower().startswith("board") else "fabric")
     return Recording(path=path, kind=kind, timestamp_ms=ts.astype(np.float64),
-                     readings=np.ascontiguousarray(readings, dtype=np.float64), **labels)
+                     readings=np.ascontiguousarray(readings, dtype=np.float64),
+                     repeated_stamps=int(np.count_nonzero(~keep)), **labels)
 
 
 def list_files(directory: str | Path, *, include_board: bool = False, pattern: str = "*.csv") -> list[Path]:
@@ -246,6 +249,28 @@ def recording_adc(rec: Recording, *, scale: float = DEFAULT_SCALE, offset: float
     return to_adc(values, scale=scale, offset=offset)
 
 
+def _declare(rec: Recording, declared: dict[str, Any], *, scale: float, offset: float, close_gaps: bool,
+             clip: bool) -> None:
+    """Add what importing ``rec`` changes to ``declared`` (the import's ledger record); ValueError for a gap in its
+    time stamps without ``close_gaps`` or a reading the map puts outside 0..1023 without ``clip`` (one line)."""
+    from rigctl.storage.time_column import gaps_text, stamp_gaps
+
+    gaps = stamp_gaps(rec.timestamp_ms / 1000.0)
+    if gaps and not close_gaps:
+        raise ValueError(f"{rec.path}: {len(gaps)} gap(s) in the time stamps ({gaps_text(gaps)}): interpolating "
+                         "across them changes the timing: give --close-gaps to close them (declared in the ledger)")
+    mapped = np.rint(rec.readings * scale + offset)
+    outside = int(np.count_nonzero((mapped < 0) | (mapped > FABRICSLIDE_SENSOR.adc_max)))
+    if outside and not clip:
+        raise ValueError(f"{rec.path}: {outside} readings map outside the 10-bit range 0..1023 (scale {scale:g}, "
+                         f"offset {offset:g}): give --clip to pin them (counted, declared in the ledger)")
+    declared["rows_in"] += int(rec.timestamp_ms.size) + rec.repeated_stamps
+    declared["samples_out"] += int(math.floor(rec.timestamp_ms[-1] - rec.timestamp_ms[0])) + 1
+    declared["repeated_stamps"] += rec.repeated_stamps
+    declared["gaps"] += len(gaps)
+    declared["clipped_values"] += outside  # (readings; the 1 kHz grid between them never overshoots them)
+
+
 def fabricslide_textures(labels: Iterable[str]) -> TextureSet:
     """:data:`FABRICSLIDE_TEXTURES`, with any label it does not know appended (sorted) to the ``fabric`` group."""
     extra = sorted(set(labels) - set(FABRICSLIDE_TEXTURES.labels))
@@ -260,7 +285,8 @@ def fabricslide_textures(labels: Iterable[str]) -> TextureSet:
 def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_board: bool = True,
                        pattern: str = "*.csv", trim: float = 0.10, scale: float = DEFAULT_SCALE,
                        offset: float = DEFAULT_OFFSET, overwrite: bool = False,
-                       progress: ProgressCallback | None = None) -> dict[str, Any]:
+                       progress: ProgressCallback | None = None, close_gaps: bool = False,
+                       clip: bool = False) -> dict[str, Any]:
     """The FabricSlide preset of ``rigctl import``: the recordings as one session file (kind ``"fabricslide"``),
     16 channels at 1 kHz, 10 bits (:data:`FABRICSLIDE_SENSOR`), fabrics and board together.
 
@@ -275,13 +301,20 @@ def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_b
     ``progress`` receives :class:`rigctl.core.progress.ProgressEvent` s: stage ``"FabricSlide import"``, done/total =
     files read then trials written (2 per file).
 
+    Nothing silent (issue 77 item 1): a gap in a file's time stamps (:func:`rigctl.storage.time_column.stamp_gaps`)
+    is refused unless ``close_gaps`` (then interpolated across), readings the 10-bit map puts outside 0..1023 unless
+    ``clip``; the regridding, the repeated stamps dropped, the gaps closed and the values clipped are declared in
+    ``import_steps`` (``fabricslide``: the ledger, :mod:`rigctl.storage.ledger`).
+
     Returns
     -------
-    dict with ``path``, ``n_trials``, ``samples``, ``labels`` (the texture labels present), ``textures``.
+    dict with ``path``, ``n_trials``, ``samples``, ``labels`` (the texture labels present), ``textures``, ``steps``
+    (the recorded import steps: :func:`rigctl.storage.ledger.ledger` of them is what changed the values).
 
     Raises
     ------
-    FileNotFoundError (no files), FileExistsError (``out_path`` exists without ``overwrite``).
+    FileNotFoundError (no files), FileExistsError (``out_path`` exists without ``overwrite``), ValueError (a gap or a
+    value outside the map refused, one line naming the file).
     """
     from rigctl.core.trial import TrialData
     from rigctl.storage.importers import _check_paths, write_session
@@ -295,8 +328,11 @@ def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_b
     bar = Stage(progress, "FabricSlide import", 2 * len(files), unit="file")
     recs: list[Any] = []
     plan: list[dict[str, Any]] = []
+    declared = {"files": len(files), "rows_in": 0, "samples_out": 0, "repeated_stamps": 0, "gaps": 0,
+                "clipped_values": 0}
     for i, path in enumerate(files):
         rec = read_recording(path)
+        _declare(rec, declared, scale=scale, offset=offset, close_gaps=close_gaps, clip=clip)
         recs.append(rec)
         plan.append({"trial_id": i, "texture": rec.label, "speed_mm_s": rec.speed_mm_s,
                      "force_g": rec.force_setpoint, "duration_s": _n_samples(rec, trim) / RATE_HZ,
@@ -308,6 +344,8 @@ def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_b
     resampling = {"method": "linear interpolation (numpy.interp) from the timestamps", "from_hz": "irregular (~35.7)",
                   "to_hz": RATE_HZ}
     samples = 0
+    steps = {"preset": "fabricslide", "adc_map": adc_map, "resampling": resampling, "files": len(files),
+             "fabricslide": declared}
 
     def items() -> Iterator[Any]:
         nonlocal samples
@@ -329,13 +367,12 @@ def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_b
                     "sensor": "CPM-Finger capacitive, 16 taxels", "adc_map": adc_map},
         attrs={"adc_map": json.dumps(adc_map), "resampling": json.dumps(resampling),
                "segmentation": json.dumps({"method": "none (one file = one trial)"}),
-               "import_steps": json.dumps({"preset": "fabricslide", "adc_map": adc_map,
-                                           "resampling": resampling, "files": len(files)}),
+               "import_steps": json.dumps(steps),
                "force_unit": "FabricSlide arm force-loop setpoint (not grams)",
                "channel_map": "channel k = FabricSlide channel<k+1> (16 channels)"})
     present = sorted({p["texture"] for p in plan}, key=textures.code)
     return {"path": str(out_path), "n_trials": len(recs), "samples": samples, "labels": present,
-            "textures": list(textures.labels)}
+            "textures": list(textures.labels), "steps": steps}
 
 
 def iter_adc_blocks(recordings: Iterable[Recording], **kw: Any) -> Iterable[np.ndarray]:

@@ -56,8 +56,11 @@ def ledger(steps: Mapping[str, Any]) -> list[LedgerEntry]:
     for read in steps.get("read") or []:
         if isinstance(read, Mapping):
             out.extend(_file_entries(read))
+    fs = steps.get("fabricslide") or None
+    if isinstance(fs, Mapping):  # the FabricSlide preset: every file regridded, the rest as counted
+        out.extend(_fabricslide_entries(fs))
     rs = steps.get("resampling") or None
-    if rs and rs.get("up") != rs.get("down"):
+    if rs and "up" in rs and rs.get("up") != rs.get("down"):
         out.append({"step": "resample", "file": None, "count": None,
                     "what": f"resampled {rs.get('from_hz', 0):g} -> {rs.get('to_hz', 0):g} Hz ({rs.get('method')})"})
     scale = steps.get("value_scale") or None
@@ -73,6 +76,22 @@ def ledger(steps: Mapping[str, Any]) -> list[LedgerEntry]:
         if scale.get("clipped_values"):
             n, top = int(scale["clipped_values"]), (1 << int(scale.get("adc_bits", 10))) - 1
             out.append({"step": "clip", "file": None, "count": n, "what": f"{n} value(s) clipped to 0..{top} (--clip)"})
+    return out
+
+
+def _fabricslide_entries(fs: Mapping[str, Any]) -> list[LedgerEntry]:
+    out: list[LedgerEntry] = [
+        {"step": "regrid", "file": None, "count": fs.get("samples_out"),
+         "what": f"time stamps (ms) of {fs.get('files')} files put on the 1 kHz grid by linear interpolation: "
+                 f"{fs.get('rows_in')} rows -> {fs.get('samples_out')} samples"},
+        {"step": "units", "file": None, "count": None,
+         "what": "capacitance counts to 10-bit counts, rint(counts * scale + offset) (adc_map), rounded"}]
+    for step, what in (("repeated_stamps", "row(s) of repeated stamps dropped (the first kept)"),
+                       ("gaps", "gap(s) in the time stamps interpolated across (--close-gaps)"),
+                       ("clip", "reading(s) clipped to 0..1023 (--clip)")):
+        n = int(fs.get("clipped_values" if step == "clip" else step) or 0)
+        if n:
+            out.append({"step": step, "file": None, "count": n, "what": f"{n} {what}"})
     return out
 
 

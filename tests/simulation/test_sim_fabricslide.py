@@ -150,3 +150,44 @@ def test_the_folder_is_given_or_named_by_the_environment(fabricslide_dir, tmp_pa
     monkeypatch.setenv("RIGCTL_FABRICSLIDE", str(tmp_path / "nowhere"))
     wrong = CliRunner().invoke(main, ["import-fabricslide", "--out", "c.h5", "--quiet"])
     assert wrong.exit_code == 1 and "nowhere" in wrong.output and "Traceback" not in wrong.output
+
+
+def test_gaps_and_clipping_refused_unless_asked_and_every_change_in_the_ledger(tmp_path):
+    """The FabricSlide preset changed values without a word (issue 77 item 1): its regridding, repeated stamps, gaps
+    interpolated across and readings clipped to the 10-bit map were in no ledger. Now a gap or a reading outside the
+    map is refused in one line unless asked for by name (--close-gaps, --clip), and each change is a ledger line."""
+    from rigctl.cli import main
+
+    header = "timestamp, proximity1, proximity2, " + ", ".join(f"channel{i}" for i in range(1, 17))
+    folder = tmp_path / "fs"
+    (folder / "fabric").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    ts = np.arange(200) * 28.0
+    ts[120:] += 400.0  # a 0.4 s hole
+    rows = np.column_stack([ts, np.zeros((200, 2)), rng.integers(100, 200, (200, 16))])
+    rows = np.insert(rows, 50, rows[49], axis=0)  # one repeated stamp
+    np.savetxt(folder / "fabric" / "Linen_F150_V10mmps_0.csv", rows, delimiter=",", fmt="%g", header=header,
+               comments="")
+
+    def run(*extra):
+        r = CliRunner().invoke(main, ["import-fabricslide", str(folder), "--out", str(tmp_path / "o.h5"), "--quiet",
+                                      "--no-board", "--overwrite", *extra])
+        return r.exit_code, r.output
+
+    rc, out = run()
+    assert rc == 1 and "1 gap(s) in the time stamps" in out and "--close-gaps" in out and "Traceback" not in out, out
+    assert not (tmp_path / "o.h5").exists()
+    rc, out = run("--close-gaps")
+    assert rc == 0, out
+    assert "ledger: time stamps (ms) of 1 files put on the 1 kHz grid by linear interpolation: 201 rows" in out, out
+    assert "ledger: 1 row(s) of repeated stamps dropped (the first kept)" in out, out
+    assert "ledger: 1 gap(s) in the time stamps interpolated across (--close-gaps)" in out, out
+    r = CliRunner().invoke(main, ["info", str(tmp_path / "o.h5")])
+    assert "interpolated across (--close-gaps)" in r.output, r.output
+    rows[10, 3:] = 4000  # beyond the map
+    np.savetxt(folder / "fabric" / "Linen_F150_V10mmps_0.csv", rows, delimiter=",", fmt="%g", header=header,
+               comments="")
+    rc, out = run("--close-gaps")
+    assert rc == 1 and "16 readings map outside the 10-bit range 0..1023" in out and "--clip" in out, out
+    rc, out = run("--close-gaps", "--clip")
+    assert rc == 0 and "ledger: 16 reading(s) clipped to 0..1023 (--clip)" in out, out
