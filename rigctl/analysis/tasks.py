@@ -188,10 +188,15 @@ def run_cv(
         short = [f"{t} ({c})" for t, c in zip(textures, counts, strict=True) if c < per_texture]
         few = ", ".join(short[:6]) + (f" (+{len(short) - 6} more)" if len(short) > 6 else "")
         setters = [str(t) for t, c in zip(textures, counts, strict=True) if c == counts.min()]
+        if counts.min() < np.median(counts):  # a few textures short of the others: they set the size
+            advice = (f"the sample size is set by {_some(setters)} ({counts.min()} trials; median texture "
+                      f"{int(np.median(counts))}): check its trials or leave it out with --textures")
+        else:  # the session itself is smaller than the draw (a first recording, a small dataset): no texture to blame
+            advice = (f"the session holds {counts.min()} trials for most textures: set --per-texture {n_draw} to say "
+                      "so, or record more trials per texture")
         _warn(res, f"textures/groups: fewer than {per_texture} trials for {few}; drawing {n_draw} per texture "
               f"instead of {per_texture} ({n_draw * len(textures)} trials per repetition instead of "
-              f"{per_texture * len(textures)}): the sample size is set by {_some(setters)} ({counts.min()} trials; "
-              f"median texture {int(np.median(counts))}): check its trials or leave it out with --textures")
+              f"{per_texture * len(textures)}): {advice}")
     res.counts["cv"] = {"per_texture": n_draw, "n_textures": len(textures), "folds": k, "repeats": repeats,
                         "trials_per_repeat": n_draw * len(textures), "groups": params.groups,
                         "n_groups": None if groups is None else int(np.unique(groups).size)}

@@ -80,8 +80,16 @@ def test_planted_speed_confound_loses_on_untrained_speed(small):
 def test_cv_tasks_scale_down_and_shapes(small):
     from rigctl.analysis.tasks import run_cv
 
-    with pytest.warns(UserWarning, match=r"fewer than 500 trials for A \(90\), B \(90\).*\(\+2 more\); drawing 90 per texture"):
+    # every texture as short as the others (the session is small): the advice is --per-texture, not to drop one
+    with pytest.warns(UserWarning, match=r"fewer than 500 trials for A \(90\), B \(90\).*\(\+2 more\); drawing 90 "
+                      r"per texture.*the session holds 90 trials for most textures: set --per-texture 90") as got:
         res = run_cv(small, ("textures", "groups"), n_pcs=12, repeats=2, per_texture=500)
+    assert not any("--textures" in str(w.message) for w in got)
+    # one texture short of the others: it sets the size, and leaving it out is the advice
+    keep = np.flatnonzero((small.texture != "A") | (np.cumsum(small.texture == "A") <= 40))
+    with pytest.warns(UserWarning, match=r"set by A \(40 trials; median texture 90\): check its trials or leave it "
+                      r"out with --textures"):
+        run_cv(small.subset(keep), ("textures",), n_pcs=6, repeats=1, per_texture=90)
     assert res.counts["cv"]["per_texture"] == 90
     for task, n_cls in (("textures", 8), ("groups", 3)):  # A smooth, B-F circular, G-H rectangular
         c = res.curves[task]["speed_force_scaled"]
