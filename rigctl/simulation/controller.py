@@ -225,7 +225,8 @@ class MegaController:
 
     @property
     def drivers_enabled(self) -> bool:
-        """The drivers' EN as the glue drives it (STATUS_FLAGS' DRIVERS_ENABLED)."""
+        """The drivers' EN line as the glue reads it back on its pin (STATUS_FLAGS' DRIVERS_ENABLED): active while the
+        glue drives it so, or while it is stuck active (``driver-enable-stuck``), whatever the controller asked."""
         return bool(self._c.drivers_on)
 
     @property
@@ -522,7 +523,9 @@ class MegaController:
         # the actuator's step rate at the controller's ACTUATOR_STEPS_PER_MM, in true mm/s of its lead screw
         vel = 0.0 if inhibit else c.act_vel_mm_s * c.hreg[HR.ACTUATOR_STEPS_PER_MM] / _TRUE_ACTUATOR_STEPS_PER_MM
         enabled = not inhibit and bool(c.drivers_on or rate > 0.0 or vel != 0.0)
-        c.drivers_on = enabled  # STATUS_FLAGS reports the pin as it is
+        # STATUS_FLAGS reports the EN line as read back on its pin (mega_drum.cpp: PINH), not the output latch: a line
+        # stuck active reads enabled whatever the glue drives (issue 75)
+        c.drivers_on = enabled or bool(self.model.driver_enable_stuck)
         self._outputs = (rate, vel) if enabled else (0.0, 0.0)
 
     def _index_to_controller(self) -> None:

@@ -9,6 +9,7 @@ import math
 
 import pytest
 
+from rigctl.core.drum import DrumState
 from rigctl.core.faults import FAULTS, FaultSpec, FaultSpecError, parse_fault
 from rigctl.simulation.model import ACTUATOR_CATCHUP_MS, RigModel
 
@@ -121,3 +122,23 @@ def test_the_campaign_draws_one_list_that_both_rigs_model():
     assert drawn == set(FAULTS)
     stiff = [draw_case(s).value for s in range(2000) if draw_case(s).fault == "contact-stiffness"]
     assert min(stiff) < 500 and max(stiff) > 3_000  # the rig config's whole range (<= 5,000 g/mm)
+
+
+def test_a_drivers_enable_line_stuck_active_reads_enabled_in_the_status(tmp_path, monkeypatch):
+    """driver-enable-stuck on the model rig: STATUS_FLAGS' DRIVERS_ENABLED is the EN line read back on its pin
+    (mega_drum.cpp: PINH), so an idle rig that asked for its drivers off reads them enabled while the line is stuck
+    active, and disabled once it is mended (before issue 75 it reported the output latch: "disabled" whatever the
+    line did, and the fault had no effect on the model rig)."""
+    from rigctl.rigs import open_rig
+
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
+    with open_rig("inprocess", seed=2, host_config_path=tmp_path / "rig.json") as rig:
+        rig.drum.home()
+        rig.drum.wait_state([DrumState.IDLE], timeout_s=30.0)
+        assert not rig.drum.read_status().drivers_enabled
+        rig.backend.inject_faults([parse_fault("driver-enable-stuck@0")])
+        rig.drum.clock.sleep(0.1)
+        assert rig.drum.read_status().drivers_enabled
+        rig.backend.inject_faults([parse_fault("driver-enable-stuck@0+0.05")])
+        rig.drum.clock.sleep(0.2)
+        assert not rig.drum.read_status().drivers_enabled

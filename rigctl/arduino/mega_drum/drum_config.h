@@ -60,6 +60,7 @@
  * Board: 10 kOhm pull-up EN -> 5 V, so the drivers stay disabled while the MCU is in reset or in its bootloader
  * (pins are inputs then); 10 kOhm pull-downs on both STEP pins so no step is made meanwhile. */
 #define PIN_EN_PORT         PORTH
+#define PIN_EN_PIN          PINH /* read back: STATUS_FLAGS' DRIVERS_ENABLED is the line, not the latch */
 #define PIN_EN_DDR          DDRH
 #define PIN_EN_BIT          5
 /* e-stop input D2 = PE4 (INT4): normally-closed contact to GND, internal pull-up: open (pressed, or a broken wire)

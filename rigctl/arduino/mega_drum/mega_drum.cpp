@@ -734,7 +734,11 @@ void loop(void)
         if ((ctl.drivers_on || act_running_cs || drum_running_cs) && !motion_inhibit)
             PIN_EN_PORT &= (uint8_t)~(1 << PIN_EN_BIT);
         else PIN_EN_PORT |= (1 << PIN_EN_BIT);
-        ctl.drivers_on = !((PIN_EN_PORT >> PIN_EN_BIT) & 1); /* STATUS_FLAGS reports the pin as it is */
+        /* STATUS_FLAGS reports the EN line as read back on its pin, not the output latch (issue 75: a line shorted
+         * active read "disabled" while the motor held full current); a nop before reading back a pin just written
+         * (ATmega2560 datasheet 13.2.4, the input synchroniser) */
+        __asm__ __volatile__("nop");
+        ctl.drivers_on = !((PIN_EN_PIN >> PIN_EN_BIT) & 1);
         sei();
     }
 
