@@ -414,8 +414,9 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
                    "the windows shifted by the calibration block's measured shift.")
 @click.option("--onboard-encoder", "onboard_encoder", is_flag=True, default=False,
               help="Handheld rig with --classify: the finger's taxel board runs the encoder image (uno_encoder) and "
-                   "encodes each scan itself, calibrated with the --classify block's range: ENCODE at the scan's "
-                   "start, the tracker's velocity of each 100 ms window, FINISH at its end; the trials keep the board's "
+                   "encodes each scan itself, calibrated with the --classify block's range: ARM at the cue (the board "
+                   "keeps its last 32 samples), ENCODE from the finger's entry as the tracker shows it, the "
+                   "tracker's velocity of each 100 ms window, FINISH at its end; the trials keep the board's "
                    "spikes and counts instead of raw taxels. With --taxel-port PORT (and --motion lsl:NAME or "
                    "serial:PORT), or --hil: the simulated operator's finger on the image under simavr "
                    "(docs/guides/handheld.md).")
