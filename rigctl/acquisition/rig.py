@@ -371,10 +371,11 @@ class Rig:
         """Configure the opened controller and read its state; nothing moves (opening is not starting,
         docs/safety.md): a latched fault is latched here (and refused when ``refuse_fault``), else the first start
         HOMEs and TAREs (:attr:`home_pending`)."""
+        first = self.drum.read_status()  # the controller as this rig first reads it: a reset after it, this rig saw
         self._apply_force_loop()
         st = self._resolve_by_config(self._booted_status())
         self._check_calibration(st)
-        self.drum_boot_count = getattr(st, "boot_count", None)
+        self.drum_boot_count = getattr(first, "boot_count", None)
         if st.state == DrumState.FAULT:  # shown and kept: opening never acknowledges (docs/safety.md)
             what = "held when the rig opened"
             if Fault.HX711_RATE in Fault(int(st.faults)):  # the rates that do not match, by name
@@ -386,6 +387,9 @@ class Rig:
                 raise FaultAtOpen(self.safety.latch)
             return
         self.home_pending = True  # the first start HOMEs and TAREs: opening moves nothing
+        # a reset while the rig was opened (its force loop written and lost, its boot count changed since the first
+        # read): latched as every reset this rig sees (issue 76: one read later, it was taken for the controller's own)
+        self.latch_unsafe(st, "while the rig was opened")
         self._keep_logged_latch()  # (a controller in FAULT holds its latch itself: above)
         if refuse_fault and self.safety.latch is not None:  # kept from the rig's log: refused as a controller's
             raise FaultAtOpen(self.safety.latch)

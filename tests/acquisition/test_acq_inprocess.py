@@ -184,6 +184,27 @@ def test_a_reset_between_the_open_and_the_first_home_is_latched_not_homed_over(r
     rig.press(300)  # the start after the acknowledgement homes and presses
 
 
+def test_a_reset_while_the_rig_opens_is_latched(tmp_path, monkeypatch):
+    """A reset after the rig first read the controller and before its open ends (as its force loop is written): the
+    boot count the rig keeps is the first one read, so the reset is latched, not taken for the controller's own
+    (its start would have homed and pressed after a reset nobody acknowledged); refused at open where faults are."""
+    from rigctl.acquisition.rig import FaultAtOpen, Rig
+    from rigctl.devices.wire import ResetCause
+
+    real = Rig._apply_force_loop
+
+    def reset_then_apply(self):
+        self.backend.controller.reset(ResetCause.EXTERNAL)
+        real(self)
+
+    monkeypatch.setattr(Rig, "_apply_force_loop", reset_then_apply)
+    with open_rig("inprocess", seed=5, host_config_path=tmp_path / "rig.json", refuse_fault=False) as rig:
+        assert rig.safety.latch is not None and rig.safety.latch.cause == "reset", rig.safety.latch
+        assert "while the rig was opened" in rig.safety.latch.detail
+    with pytest.raises(FaultAtOpen):
+        open_rig("inprocess", seed=5, host_config_path=tmp_path / "rig.json", refuse_fault=True)
+
+
 def test_bad_eeprom_and_a_calibration_mismatch_are_warned_on_open(tmp_path):
     """Opening a rig whose controller runs on default calibration (blank or bad EEPROM), with a rig config whose
     load-cell calibration differs from the controller's scale: both are warned about, by name."""
