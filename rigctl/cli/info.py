@@ -11,7 +11,7 @@ import click
 from rigctl.cli.jsonout import json_text
 from rigctl.cli.progress import bars, progress_option, show_bars
 from rigctl.core.progress import ProgressCallback
-from rigctl.storage.ledger import ledger_lines, session_ledger
+from rigctl.storage.ledger import ledger_lines, session_flags, session_ledger
 from rigctl.storage.session import TrialStatus, open_session
 
 _STATUS = {int(s): s.name.lower() for s in TrialStatus}
@@ -98,6 +98,7 @@ def session_summary(path: str | Path, *, keep_nonfinite: bool = False,
             "calibration": sorted(s.calibration) if s.calibration else None,
             "trials": trials, "totals": totals,
             "ledger": session_ledger(s.attrs),  # every step that changed a value on import (rigctl.storage.ledger)
+            "import_flags": session_flags(s.attrs),  # what the import flagged (outlier files, missed presses)
         }
 
 
@@ -316,3 +317,5 @@ def info(file, as_json, provenance, keep_nonfinite, progress):
                   f"{tot['held_trials']} trials" if tot["repeated_samples"] else ""))
     for line in ledger_lines(summary.get("ledger") or []):
         click.echo(f"ledger: {line}")
+    for line in summary.get("import_flags") or []:
+        click.echo(f"import flagged: {line}")

@@ -482,6 +482,7 @@ class _Force:
 def _usable_ids(s: Any, run: EncodeRun, kept: Any = None) -> tuple[list[int], dict[int, str]]:
     """The trials to encode (the validator's usable ones, or the asked ones that are usable) and the excluded;
     ``kept``: the validator's :class:`~rigctl.storage.validate.KeptTaxels`."""
+    from rigctl.storage.ledger import use_warnings
     from rigctl.storage.validate import TrialsExcluded, usable_trials
 
     # the one trial validator: damaged trials excluded, with their reasons
@@ -489,10 +490,8 @@ def _usable_ids(s: Any, run: EncodeRun, kept: Any = None) -> tuple[list[int], di
     ids = report.ids if run.trial_ids is None else [t for t in run.trial_ids if t not in report.excluded]
     if report.excluded:
         warnings.warn(f"{run.session_path}: {report.summary()}", TrialsExcluded, stacklevel=4)
-    held = [report.repeated_samples.get(t, 0) for t in ids]  # recounted by the validator from the counts it read
-    if any(held):  # a held reading is encoded as recorded: said, like the trials' other counts
-        warnings.warn(f"{sum(held)} samples in {sum(h > 0 for h in held)} trials repeat the one before on every "
-                      "taxel (held readings, encoded as recorded; rigctl info lists them)", stacklevel=4)
+    for line in use_warnings(s.attrs, report.repeated_samples, ids):  # held readings, the import's flags: said
+        warnings.warn(line, stacklevel=4)
     if not ids:
         raise ValueError(f"{run.session_path} has no usable complete trials"
                          + (f" ({report.summary()})" if report.excluded else ""))

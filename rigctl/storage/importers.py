@@ -86,6 +86,7 @@ from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.core.sensor import LayoutError, SensorLayout, parse_layout
 from rigctl.core.textures import TextureSet, texture_set_from_labels
 from rigctl.core.trial import REPEATED_SAMPLES_FLAG, TrialData, repeated_samples
+from rigctl.storage.ledger import FLAGS_ATTR
 from rigctl.storage.recording_files import (
     FORMATS,
     NAN_POLICIES,
@@ -756,12 +757,13 @@ def import_recordings(files: Sequence[str | os.PathLike[str]], out: str | os.Pat
         raise RecordingImportError(f"every file was refused: {'; '.join(run.notes)}")
     layout = run.layout()
     textures = TextureSet.from_dict(dict(opts.texture_set)) if opts.texture_set else None
+    flags = outlier_warnings(run.rows)  # carried in the session: info, encode and analyze say them too
     summary = write_imported_session(out, run.trials, layout=layout, textures=textures, kind="imported",
-                                     attrs=run.session_attrs(),
+                                     attrs={**run.session_attrs(), FLAGS_ATTR: json.dumps(flags)},
                                      rig_config={"source": "rigctl import", "sensor": layout.to_dict()},
                                      protocol_name="import", overwrite=overwrite, progress=progress)
     summary.update(steps=run.steps, segments=run.rows,
-                   warnings=outlier_warnings(run.rows) + run.notes,
+                   warnings=flags + run.notes,
                    label_ranges=label_ranges(t.labels for t in run.trials),
                    refused=run.steps.get("refused", []))
     return summary

@@ -11,7 +11,12 @@ import json
 from collections.abc import Mapping
 from typing import Any
 
-__all__ = ["LedgerEntry", "ledger", "ledger_lines", "session_ledger"]
+__all__ = ["FLAGS_ATTR", "LedgerEntry", "ledger", "ledger_lines", "session_flags", "session_ledger",
+           "use_warnings"]
+
+#: root attribute: JSON list of the lines the import flagged (files whose trials do not follow their presses, whose
+#: period or trial count is an outlier): carried so that info, encode and analyze say them too (issue 77 item 7)
+FLAGS_ATTR = "import_flags"
 
 #: one step: ``step`` (its kind: resample, units, round, clip, regrid, gaps, repeated_stamps, nan, lost_frames),
 #: ``file`` (None: every file), ``count`` (values or samples it touched, None: all), ``what`` (in words)
@@ -100,14 +105,38 @@ def ledger_lines(entries: list[LedgerEntry]) -> list[str]:
     return [f"{e['file']}: {e['what']}" if e.get("file") else str(e["what"]) for e in entries]
 
 
+def _json_attr(attrs: Mapping[str, Any], name: str) -> Any:
+    """Root attribute ``name`` parsed as JSON; None when absent or not JSON."""
+    raw = attrs.get(name)
+    try:
+        return None if raw is None else json.loads(raw if isinstance(raw, str) else bytes(raw).decode("utf-8"))
+    except (TypeError, ValueError):
+        return None
+
+
 def session_ledger(attrs: Mapping[str, Any]) -> list[LedgerEntry]:
     """The ledger of a session from its root attributes (``import_steps``); [] when it holds none (recorded,
     generated) or they do not parse."""
-    raw = attrs.get("import_steps")
-    if raw is None:
-        return []
-    try:
-        steps = json.loads(raw if isinstance(raw, str) else bytes(raw).decode("utf-8"))
-    except (TypeError, ValueError):
-        return []
+    steps = _json_attr(attrs, "import_steps")
     return ledger(steps) if isinstance(steps, Mapping) else []
+
+
+def session_flags(attrs: Mapping[str, Any]) -> list[str]:
+    """The lines the import flagged (:data:`FLAGS_ATTR`), [] when it holds none or they do not parse."""
+    flags = _json_attr(attrs, FLAGS_ATTR)
+    return [str(x) for x in flags] if isinstance(flags, list) else []
+
+
+def use_warnings(attrs: Mapping[str, Any], repeated: Mapping[int, int], ids: list[int]) -> list[str]:
+    """What a command using trials ``ids`` of a session (its root ``attrs``) says beside its work: the import's flags
+    (:func:`session_flags`) and the held readings the validator counted (``repeated``: trial id -> repeated samples,
+    :attr:`rigctl.storage.validate.TrialReport.repeated_samples`), one line each."""
+    out = []
+    flags = session_flags(attrs)
+    if flags:
+        out.append(f"the import flagged {len(flags)} file(s) (rigctl info lists them): {flags[0]}")
+    held = [int(repeated.get(t, 0)) for t in ids]
+    if any(held):  # a held reading is encoded as recorded: said, like the trials' other counts
+        out.append(f"{sum(held)} samples in {sum(h > 0 for h in held)} trials repeat the one before on every taxel "
+                   "(held readings, encoded as recorded; rigctl info lists them)")
+    return out

@@ -43,7 +43,8 @@ SEAL = "seal"
 #: root attribute: JSON {name: SHA-256 hex} of :data:`SEALED_ROOT_ATTRS` present and the calibration group
 ROOT_ATTR = "sealed_attrs_sha256"
 #: the root attributes whose change changes results (the sensor, the textures, what the import did)
-SEALED_ROOT_ATTRS = ("schema_version", "kind", "sensor_layout", "texture_set", "texture_labels", "import_steps")
+SEALED_ROOT_ATTRS = ("schema_version", "kind", "sensor_layout", "texture_set", "texture_labels", "import_steps",
+                     "import_flags")
 #: the recording arrays a trial's ``arrays_sha256`` covers, in order (the taxels have the facts' own SHA-256)
 SEALED_ARRAYS = ("seq", "flags", "host_time_s", "force_g", "force_time_s", "speed_mm_s", "speed_time_s")
 #: the plan fields a trial's ``plan_sha256`` covers (its status changes as it is recorded; these do not)

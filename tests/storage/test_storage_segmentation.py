@@ -65,6 +65,13 @@ def test_cycles_find_every_cycle_at_its_press_onset_with_a_table_and_the_outlier
     short = truth[-1].path.name
     warned = [line for line in r.stderr.splitlines() if line.startswith("warning:")]
     assert len(warned) == 1 and short in warned[0] and "trial count 8" in warned[0]
+    # the flag is carried in the session (issue 77 item 7): info lists it, encode (so analyze) says it
+    info = CliRunner().invoke(main, ["info", str(out)])
+    assert f"import flagged: {warned[0].removeprefix('warning: ')}" in info.output, info.output
+    enc = CliRunner().invoke(main, ["encode", str(out), "--out", str(tmp_path / "e.h5"), "--no-progress",
+                                    "--variant", "original"])
+    assert enc.exit_code == 0 and "the import flagged 1 file(s) (rigctl info lists them): " + short in enc.output, \
+        enc.output
     got = trials_by_file(out)
     assert sorted(got) == sorted(t.path.name for t in truth)
     for t in truth:
