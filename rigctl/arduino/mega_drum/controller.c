@@ -731,8 +731,14 @@ static void home_step(ctl_t *c, uint32_t now_ms)
         } else if (c->ratchet_valid && c->act_pos_steps >= c->ratchet_steps) {
             break; /* the switch reads closed where the last latch stopped the actuator: it is not home */
         } else if ((float)moved >= (float)RIGCTL_HOME_LEAVE_UM * 1e-3f * spmm) {
-            direction_fault(c); /* left creeping, the switch still closed: the motor turns the other way, or the
-                                 * switch is stuck closed (the load watch sees a contact first) */
+            /* left creeping, the switch still closed and no load risen: the motor turns the other way (into its rear
+             * stop: the count is not the position, so no ratchet from it), or the switch is stuck closed off the
+             * contact (the next HOME creeps on; the load watch latches at the contact, with its ratchet) */
+            uint8_t had = c->ratchet_valid;
+            int32_t at = c->ratchet_steps;
+            direction_fault(c);
+            c->ratchet_valid = had;
+            c->ratchet_steps = at;
         } else {
             c->act_vel_mm_s = (float)RIGCTL_HOME_CREEP_UM * 1e-3f / hx_period(c);
         }
