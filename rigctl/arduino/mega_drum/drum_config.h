@@ -58,9 +58,10 @@
 #define PIN_HX_SCK_BIT      5
 /* stepper drivers' enable, shared by both drivers: D8 = PH5, active low (A4988, DRV8825, TMC2209 EN).
  * Board: 10 kOhm pull-up EN -> 5 V, so the drivers stay disabled while the MCU is in reset or in its bootloader
- * (pins are inputs then); 10 kOhm pull-downs on both STEP pins so no step is made meanwhile. */
+ * (pins are inputs then); 10 kOhm pull-downs on both STEP pins so no step is made meanwhile. STATUS_FLAGS'
+ * DRIVERS_ENABLED is the line read back on PIN_EN_PIN, not the output latch. */
 #define PIN_EN_PORT         PORTH
-#define PIN_EN_PIN          PINH /* read back: STATUS_FLAGS' DRIVERS_ENABLED is the line, not the latch */
+#define PIN_EN_PIN          PINH
 #define PIN_EN_DDR          DDRH
 #define PIN_EN_BIT          5
 /* e-stop input D2 = PE4 (INT4): normally-closed contact to GND, internal pull-up: open (pressed, or a broken wire)
