@@ -185,18 +185,7 @@ def run_cv(
         why = (f"per_texture is {per_texture}" if per_texture < k else f"the smallest texture has {counts.min()}")
         raise ValueError(f"need at least {k} trials per texture for {k}-fold CV ({why})")
     if n_draw < per_texture:
-        short = [f"{t} ({c})" for t, c in zip(textures, counts, strict=True) if c < per_texture]
-        few = ", ".join(short[:6]) + (f" (+{len(short) - 6} more)" if len(short) > 6 else "")
-        setters = [str(t) for t, c in zip(textures, counts, strict=True) if c == counts.min()]
-        if counts.min() < np.median(counts):  # a few textures short of the others: they set the size
-            advice = (f"the sample size is set by {_some(setters)} ({counts.min()} trials; median texture "
-                      f"{int(np.median(counts))}): check its trials or leave it out with --textures")
-        else:  # the session itself is smaller than the draw (a first recording, a small dataset): no texture to blame
-            advice = (f"the session holds {counts.min()} trials for most textures: set --per-texture {n_draw} to say "
-                      "so, or record more trials per texture")
-        _warn(res, f"textures/groups: fewer than {per_texture} trials for {few}; drawing {n_draw} per texture "
-              f"instead of {per_texture} ({n_draw * len(textures)} trials per repetition instead of "
-              f"{per_texture * len(textures)}): {advice}")
+        _warn(res, _short_draw_warning(textures, counts, per_texture, n_draw))
     res.counts["cv"] = {"per_texture": n_draw, "n_textures": len(textures), "folds": k, "repeats": repeats,
                         "trials_per_repeat": n_draw * len(textures), "groups": params.groups,
                         "n_groups": None if groups is None else int(np.unique(groups).size)}
@@ -222,6 +211,24 @@ def run_cv(
                           min(confusion_pcs, n_used)))
     res.settings.update({"n_pcs": n_used, "repeats": repeats, "seed": seed})
     return res
+
+
+def _short_draw_warning(textures: np.ndarray, counts: np.ndarray, per_texture: int, n_draw: int) -> str:
+    """The warning of a CV draw smaller than ``per_texture`` (``n_draw`` per texture, ``counts`` trials of each of
+    ``textures``), with the advice that fits the data: a few textures short of the others set the size (check them or
+    leave them out), or the session itself is smaller than the draw (say so with --per-texture)."""
+    short = [f"{t} ({c})" for t, c in zip(textures, counts, strict=True) if c < per_texture]
+    few = ", ".join(short[:6]) + (f" (+{len(short) - 6} more)" if len(short) > 6 else "")
+    setters = [str(t) for t, c in zip(textures, counts, strict=True) if c == counts.min()]
+    if counts.min() < np.median(counts):  # a few textures short of the others: they set the size
+        advice = (f"the sample size is set by {_some(setters)} ({counts.min()} trials; median texture "
+                  f"{int(np.median(counts))}): check its trials or leave it out with --textures")
+    else:  # the session itself is smaller than the draw (a first recording, a small dataset): no texture to blame
+        advice = (f"the session holds {counts.min()} trials for most textures: set --per-texture {n_draw} to say "
+                  "so, or record more trials per texture")
+    return (f"textures/groups: fewer than {per_texture} trials for {few}; drawing {n_draw} per texture instead of "
+            f"{per_texture} ({n_draw * len(textures)} trials per repetition instead of {per_texture * len(textures)}): "
+            f"{advice}")
 
 
 #: zero_padding of the feature matrices in use, by id (with a weak reference that drops the entry with the matrix):
