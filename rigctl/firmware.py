@@ -54,11 +54,12 @@ IMAGES: dict[str, tuple[str, ...]] = {"uno": ("uno_taxel", "uno_encoder"), "mega
 #: both stock bootloaders talk at 115200 baud
 BOOTLOADER_BAUD = 115200
 #: the oldest drum-controller firmware (major, minor) whose safety rules this rigctl's host rules and docs/safety.md
-#: assume (1.3: the press watches its direction and a latch backs off only the way the press proved,
-#: docs/wire-protocol.md 2.5): an image below it is never run, ``--allow-firmware-mismatch`` or not
+#: assume (1.4: HOME creeps off the switch and proves it opens, the ratchet guard, the force loop's limit governor,
+#: the contact stiffness range, EN read back: docs/wire-protocol.md 2.5): an image below it is never run,
+#: ``--allow-firmware-mismatch`` or not
 #: (:func:`below_safety_floor`). A change to controller.c's safety rules raises the Mega's minor version and this
 #: floor with it (docs/firmware.md)
-MEGA_SAFETY_FLOOR: tuple[int, int] = (1, 3)
+MEGA_SAFETY_FLOOR: tuple[int, int] = (1, 4)
 #: hex digits of :func:`source_digest` a build gives the firmware as its BUILD_ID (the Uno's banner ``build=``, the
 #: Mega's 48-bit BUILD_ID_0 .. _2 input registers: docs/wire-protocol.md 1.4 and 2.2)
 BUILD_ID_DIGITS = 12
@@ -115,7 +116,7 @@ REQUIRED_BUILD_ID = ("mega",)
 
 
 def known_versions(src: Path | str | None = None) -> str:
-    """The firmware this rigctl knows, in words: ``"mega firmware 1.3 build f3310eaea3e2, uno firmware 1.0 build
+    """The firmware this rigctl knows, in words: ``"mega firmware 1.4 build f3310eaea3e2, uno firmware 1.0 build
     f3310eaea3e2"`` (the installed sources' :func:`source_versions` and :func:`build_id`; their errors)."""
     versions, bid = source_versions(src), build_id(src)
     return ", ".join(f"{board} firmware {'.'.join(map(str, v))} build {bid}" for board, v in versions.items())

@@ -152,7 +152,7 @@ UNO_FIRMWARE_VERSION = (1, 0)
 # --------------------------------------------------------------------------------------------------------------
 DRUM_BAUD = 500_000
 DRUM_DEVICE_ID = 1
-MEGA_FIRMWARE_VERSION = (1, 3)
+MEGA_FIRMWARE_VERSION = (1, 4)
 
 
 class HoldingRegister(enum.IntEnum):

@@ -104,7 +104,7 @@
 #define RIGCTL_DRUM_BAUD             500000UL
 #define RIGCTL_DRUM_DEVICE_ID        1
 #define RIGCTL_MEGA_FW_MAJOR         1
-#define RIGCTL_MEGA_FW_MINOR         3
+#define RIGCTL_MEGA_FW_MINOR         4
 #define RIGCTL_MEGA_FIRMWARE_VERSION ((RIGCTL_MEGA_FW_MAJOR << 8) | RIGCTL_MEGA_FW_MINOR)
 
 /* Modbus function codes and exception codes used by the spec */
