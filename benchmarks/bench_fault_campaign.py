@@ -378,15 +378,28 @@ def run_hil_case(case: Case, folder: Path, truth_log: Path | None = None, paced:
     return result(case, rows, latches, script, open_error, time.perf_counter() - t_wall)
 
 
+#: faults that, wired so from power-on, make the rig refuse to open, and the words of that refusal: the behaviour under
+#: test, judged on the truth like any other case (the rig's boards ran while the host tried), not a case that did not
+#: run (an open that failed for another reason still is one)
+OPEN_REFUSALS = {"host-silence": "no answer from the drum controller"}
+
+
+def refused_at_open(case: Case, open_error: str | None) -> bool:
+    """Whether ``open_error`` is the refusal the case's power-on fault is expected to cause (:data:`OPEN_REFUSALS`)."""
+    words = OPEN_REFUSALS.get(case.fault)
+    return bool(open_error and case.moment == "power-on" and words and words in open_error)
+
+
 def result(case: Case, truth: np.ndarray, latches: list[tuple[float, float | None]], script: Script | None, open_error: str | None,
            wall_s: float) -> dict[str, Any]:
     trials = script.trials if script is not None else []
     violations = check_invariants(truth, latches=latches, trials=trials)
-    not_run = None if open_error is None and len(truth) else (f"open: {open_error}" if open_error
-                                                             else "the truth log is empty")
+    refused = refused_at_open(case, open_error)
+    not_run = None if (open_error is None or refused) and len(truth) else (
+        f"open: {open_error}" if open_error and not refused else "the truth log is empty")
     return {"seed": case.seed, "case": case.describe(), "fault": case.fault, "value": case.value,
             "moment": case.moment, "not_run": not_run,
-            "outcome": "not_run" if not_run else (script.outcome if script else "?"),
+            "outcome": "not_run" if not_run else "refused at open" if refused else (script.outcome if script else "?"),
             "trials_recorded": len(trials), "latches": latches,
             "true_force_max_g": round(float(truth[:, 1].max()), 1) if len(truth) else 0.0,
             "sim_s": round(float(truth[-1, 0] - truth[0, 0]), 3) if len(truth) else 0.0, "wall_s": round(wall_s, 3),

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -215,6 +216,28 @@ def test_a_case_that_did_not_run_is_not_run_and_fails_the_campaign(monkeypatch, 
     assert [r["seed"] for r in out["results"]] == [123, 124]
     assert all(r["outcome"] == "not_run" and set(r) >= {"seed", "fault", "outcome", "true_force_max_g"}
                for r in out["results"])
+
+
+def test_a_link_cut_from_power_on_is_refused_at_open_and_judged_not_skipped(tmp_path):
+    """A USB link cut from power-on (``host-silence`` at ``power-on``: fresh seeds 731018, 731041, 731294) makes the
+    rig refuse to open: the behaviour under test, judged on the truth the model ran meanwhile ("refused at open",
+    nothing pressed), not ``not_run``; another open error of the same case, or the same words for another fault,
+    stays ``not_run``."""
+    from rigctl.simulation.campaign import Case
+
+    bench_mod = _bench_module()
+    case = Case(seed=731018, fault="host-silence", value=None, moment="power-on", moment_fraction=0.11,
+                duration_s=math.inf, stiffness_g_per_mm=1733.0, hx711_rate_sps=80, forces_g=(1467.0, 793.0),
+                speed_mm_s=40.0)
+    truth = np.array([[0.0, 0.0, 0.0, 0.0], [4.0, 0.0, 0.0, 0.0]])
+    words = "RigOpenError: cannot open the inprocess rig: no answer from the drum controller on in-process"
+    out = bench_mod.result(case, truth, [], None, words, 1.0)
+    assert out["not_run"] is None and out["outcome"] == "refused at open" and out["violations"] == []
+    other = bench_mod.result(case, truth, [], None, "HilError: no telemetry from the Mega harness", 1.0)
+    assert other["not_run"].startswith("open: HilError")
+    estop = bench_mod.result(dataclasses.replace(case, fault="estop"), truth, [], None, words, 1.0)
+    assert estop["outcome"] == "not_run"
+    assert bench_mod.run_model_case(case, tmp_path)["outcome"] == "refused at open"
 
 
 def test_faults_narrows_the_draw_and_an_unknown_fault_is_a_usage_error(capsys):
