@@ -49,7 +49,9 @@ _CRUSH = f" ({CRUSH_NOTE})"
 CAUSES: dict[str, tuple[str, str]] = {
     "estop": ("e-stop", "release the e-stop"),
     "force-limit": ("force limit exceeded", "check the plate and the sensor, lower the force setpoint" + _CRUSH),
-    "reversed-cell": ("load cell reversed", "mount the load cell the right way (or fix the sign of its scale)" + _CRUSH),
+    "reversed-cell": ("load cell reversed", "press the load cell by hand and read FORCE_G: if it falls, swap A+/A- "
+                      "at the HX711 (or turn the cell over); if it rises, change no wire and recalibrate it (its zero "
+                      "or scale is wrong)" + _CRUSH),
     "watchdog": ("host watchdog expired", "make sure the host program and its USB link are alive"),
     "loadcell-timeout": ("load cell not responding", "check the HX711's wiring"),
     "actuator-direction": ("actuator turning the wrong way or load cell reversed",

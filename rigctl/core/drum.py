@@ -185,8 +185,11 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "load cell reversed",
         "the force read negative while pressing: the load cell is mounted or wired the other way round, or its "
         "scale has the wrong sign",
-        "the force went below -2 x FORCE_TOLERANCE_G while pressing: the load cell is mounted or wired the other "
-        "way round (swap A+ and A- at the HX711) or its scale has the wrong sign; recalibrate it."),
+        "the force went below -2 x FORCE_TOLERANCE_G while pressing. Tell the causes apart before changing any "
+        "wire: press the load cell by hand and read FORCE_G. If it falls, the cell is mounted or wired the other way "
+        "round: swap A+ and A- at the HX711 (or turn the cell over), then recalibrate. If it rises, the cell and its "
+        "wires are right and its zero or scale is not (a tare taken under load, a mount changed since calibration): "
+        "change no wire, recalibrate it (rigctl calibrate)."),
     Fault.HOME_NOT_FOUND: FaultWords(
         "home switch not found",
         "HOME did not reach the home switch within its travel limit or timeout (a broken switch or wire, a stalled "
