@@ -221,8 +221,11 @@ class HilRig:
         #: the controller's own latches, from its RAM (the harness's ``STATE`` lines): [start_s, end_s or None] of
         #: the Mega's simulated time, each span its state was FAULT (:attr:`latch_spans`)
         self.latches: list[list[float | None]] = []
+        #: commands for the Uno's harness given before it started (a fault wired so from power-on: the Mega's
+        #: harness starts first and applies the schedule's FAULT@0 ones), sent once it runs
+        self._uno_pending: list[str] = []
         self.faults = HilFaults(lambda c: self._running(self._mega, "Mega").send(c),
-                                None if not with_uno else lambda c: self._running(self._uno, "Uno").send(c), taxel_ohm,
+                                None if not with_uno else self._to_uno, taxel_ohm,
                                 calibration_offset=self._calibration_offset,
                                 calibration_record=self._calibration_record)
         self.telemetry: Telemetry | None = None
@@ -370,6 +373,8 @@ class HilRig:
         self.clock_file.board_port("mega", self._mega.port)  # on self.clock, its writes stamped
         if self.schedule is not None and not self.schedule.armed:  # faults injected before the rig started
             self.faults.start(self.schedule, self.clock.now(), power_on=self._power_on_pending)
+            if self._power_on_pending and self.truth is not None:  # a rig wired so from power-on: its truth from
+                self.truth.start(0.0)  # the harness's time 0 (an open the fault refuses is judged on it too)
         if not self.with_uno:
             return self
         try:
@@ -381,12 +386,23 @@ class HilRig:
             self._mega = None
             raise
         self.clock_file.board_port("uno", self._uno.port)
+        pending, self._uno_pending = self._uno_pending, []
+        for command in pending:  # (a taxel-link-drop wired from power-on, fresh campaign seed 734043)
+            self._uno.send(command)
         if self.live:
             self._render_and_load()
             self._stop.clear()
             self._feeder = threading.Thread(target=board_thread(self._feed), name="hil-feeder", daemon=True)
             self._feeder.start()
         return self
+
+    def _to_uno(self, command: str) -> None:
+        """Send ``command`` to the Uno's harness; before it started (the power-on faults, applied as the Mega's harness
+        starts), once it runs."""
+        if self._uno is None and self._mega is not None:
+            self._uno_pending.append(command)
+            return
+        self._running(self._uno, "Uno").send(command)
 
     def _hardware_args(self) -> list[str]:
         """The harness options of the telemetry period (``tel_ms``), the HX711 (rate, oscillator error), the drum

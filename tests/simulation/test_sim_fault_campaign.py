@@ -237,6 +237,9 @@ def test_a_link_cut_from_power_on_is_refused_at_open_and_judged_not_skipped(tmp_
     assert other["not_run"].startswith("open: HilError")
     estop = bench_mod.result(dataclasses.replace(case, fault="estop"), truth, [], None, words, 1.0)
     assert estop["outcome"] == "not_run"
+    banner = "RigError: cannot open the hil rig: no ready banner ('#RIGCTL-UNO READY') from /dev/pts/1 within 3 s"
+    dropped = bench_mod.result(dataclasses.replace(case, fault="taxel-link-drop"), truth, [], None, banner, 1.0)
+    assert dropped["outcome"] == "refused at open"  # the Uno's link cut from power-on (fresh hil seed 734043)
     assert bench_mod.run_model_case(case, tmp_path)["outcome"] == "refused at open"
 
 
