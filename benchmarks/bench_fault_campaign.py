@@ -212,7 +212,8 @@ class AdviceWalk:
         from 0 g ... recalibrate ... change no wire. Else press the load cell by hand ... if it falls ... swap A+ and
         A- ... If it rises ... watch the lead screw while the start's HOME creeps" (the doctor's hand press:
         :func:`rigctl.acquisition.doctor.drum_checks.hand_press_change_g`; the watch: :meth:`watch_the_screw`),
-        LOADCELL_REVERSED's "press the load cell by hand ... If it falls ... swap A+ and A-", FORCE_LIMIT's "lower the force setpoint" (by a fifth), HX711_STUCK's
+        LOADCELL_REVERSED's "press the load cell by hand ... If it falls ... swap A+ and A-", FORCE_LIMIT's "lower
+        the force setpoint" (by a fifth), HX711_STUCK's
         "Power-cycle the rig" (the controller powers on again, the HX711 with it); every other advice is a check,
         which finds nothing (the fault is a single hidden one)."""
         from rigctl.acquisition.doctor import DoctorContext
