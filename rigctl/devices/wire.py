@@ -334,7 +334,7 @@ HOME_PROOF_MM = 2
 #: HOME leaves the closed switch creeping (HOME_CREEP_UM per HX711 period, the load watched at HOME_RISE_G) and the
 #: switch must open within this travel, um, before any fast move (spec 2.5, issue 75: a switch stuck closed walked the
 #: actuator 2 mm into the sensor at 3 mm/s on every acknowledged HOME)
-HOME_LEAVE_UM = 500
+HOME_LEAVE_UM = 1500
 #: ACTUATOR_DIRECTION: an untared force rise above the lowest reading since HOME or a back-off began, g (spec 2.5)
 DIRECTION_RISE_G = 150
 

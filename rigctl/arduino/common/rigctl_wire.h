@@ -304,7 +304,8 @@
 #define RIGCTL_HOME_MAX_TRAVEL_MM          25
 #define RIGCTL_HOME_TIMEOUT_MS             10000
 #define RIGCTL_HOME_PROOF_MM               2   /* the switch opens within this when HOME leaves home (2.5) */
-#define RIGCTL_HOME_LEAVE_UM               500 /* HOME leaves the switch creeping; it must open within this (2.5) */
+#define RIGCTL_HOME_LEAVE_UM               1500 /* HOME leaves the switch creeping; it must open within this: the rear stop
+                                                 * 1 mm behind the switch + 0.5 mm (2.5) */
 #define RIGCTL_DIRECTION_RISE_G            150 /* untared rise while moving home or backing off: ACTUATOR_DIRECTION */
 
 /* 2.7 reset cause (bit numbers = the MCUSR bits PORF, EXTRF, BORF, WDRF) */

@@ -500,7 +500,9 @@ static void test_safety()
         for (; ms < 5000 && c.state == RIGCTL_STATE_HOMING; ms += 10) run_ms(c, p, now, 10);
         std::printf("safety: reversed actuator at home: ACTUATOR_DIRECTION after %d ms\n", ms);
         CHECK(c.state == RIGCTL_STATE_FAULT && c.faults == RIGCTL_FAULT_ACTUATOR_DIRECTION && !c.homed);
-        CHECK(ms <= (int)(1000.0 * RIGCTL_HOME_PROOF_MM / ACT_HOME_SPEED_MM_S) + 50 && c.act_vel_mm_s == 0.0f);
+        // (the leave creeps HOME_CREEP_UM per HX711 period until HOME_LEAVE_UM, then latches)
+        CHECK(ms <= (int)(1000.0 * c.hx_period_s * RIGCTL_HOME_LEAVE_UM / RIGCTL_HOME_CREEP_UM) + 50 &&
+              c.act_vel_mm_s == 0.0f);
         CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT) && c.state == RIGCTL_STATE_NOT_HOMED);
         // a reset while pressing 1000 g at 2 kg/mm: HOME drives it further in; stopped by the untared rise
         ctl_init(&c, 0, 0);
