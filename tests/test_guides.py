@@ -36,7 +36,7 @@ NOT_RUN = {
     ("docs/my-sensor.md", "rigctl sim --replay"): "not-run",
     # "Other people's files": tests/storage/test_storage_import_numbers.py runs the section's two blocks
     ("docs/my-sensor.md", "import numpy as np\nfrom datetime import datetime"): "run-by",
-    ("docs/my-sensor.md", "rigctl import logger__felt.csv"): "run-by",
+    ("docs/my-sensor.md", "if ! rigctl import logger__felt.csv"): "run-by",
     ("docs/guides/spiking-networks.md", "pip install tonic snntorch"): "not-run",
     ("docs/guides/spiking-networks.md", "# rigctl_tonic.py"): "run-by",
     ("docs/guides/spiking-networks.md", "# tonic_frames.py"): "run-by",
