@@ -216,8 +216,6 @@ class AdviceWalk:
         the force setpoint" (by a fifth), HX711_STUCK's
         "Power-cycle the rig" (the controller powers on again, the HX711 with it); every other advice is a check,
         which finds nothing (the fault is a single hidden one)."""
-        from rigctl.acquisition.doctor import DoctorContext
-        from rigctl.acquisition.doctor.drum_checks import hand_press_change_g
         from rigctl.core.drum import FAULT_WORDS, Fault, ResetCause
 
         engine = self.rig.backend.engine
@@ -232,23 +230,12 @@ class AdviceWalk:
                     done.append(f"{bit.name}: FORCE_G {at_rest_g:+.0f} g with nothing touching: recalibration "
                                 "asked, no wire changed")
                     continue
-                change = hand_press_change_g(DoctorContext("inprocess", rig=self.rig))
-                if change is not None and change < 0:
-                    model.loadcell_sign = -model.loadcell_sign
-                    done.append(f"{bit.name}: hand press {change:+.0f} g, swapped A+ and A-")
-                else:
+                if not self._hand_press_swaps_the_cell(bit.name, done):
                     self.watch = True
-                    done.append(f"{bit.name}: hand press {change:+.0f} g, the screw to be watched at the start")
+                    done[-1] += ", the screw to be watched at the start"
             elif "by hand" in advice and "swap A+ and A-" in advice:  # LOADCELL_REVERSED: "If it falls ... swap"
-                change = hand_press_change_g(DoctorContext("inprocess", rig=self.rig))
-                if change is not None and change < 0:
-                    model.loadcell_sign = -model.loadcell_sign
-                    done.append(f"{bit.name}: hand press {change:+.0f} g, swapped A+ and A-")
-                else:
-                    done.append(f"{bit.name}: hand press {change:+.0f} g, changed no wire (recalibration asked)")
-            elif "swap A+ and A-" in advice:
-                model.loadcell_sign = -model.loadcell_sign
-                done.append(f"{bit.name}: swapped A+ and A-")
+                if not self._hand_press_swaps_the_cell(bit.name, done):
+                    done[-1] += ", changed no wire (recalibration asked)"
             elif "lower the force setpoint" in advice:
                 self.force_g = max(100.0, 0.8 * self.force_g)
                 done.append(f"{bit.name}: setpoint lowered to {self.force_g:.0f} g")
@@ -259,6 +246,22 @@ class AdviceWalk:
             else:
                 done.append(f"{bit.name}: checked, found nothing")
         return done
+
+    def _hand_press_swaps_the_cell(self, name: str, done: list[str]) -> bool:
+        """The advice's hand press (the doctor's: :func:`rigctl.acquisition.doctor.drum_checks.hand_press_change_g`):
+        a fall swaps A+ and A- (True); what it read is the last step of ``done`` either way."""
+        from rigctl.acquisition.doctor import DoctorContext
+        from rigctl.acquisition.doctor.drum_checks import hand_press_change_g
+
+        change = hand_press_change_g(DoctorContext("inprocess", rig=self.rig))
+        read = "nothing" if change is None else f"{change:+.0f} g"
+        if change is not None and change < 0:
+            model = self.rig.backend.engine.model
+            model.loadcell_sign = -model.loadcell_sign
+            done.append(f"{name}: hand press {read}, swapped A+ and A-")
+            return True
+        done.append(f"{name}: hand press {read}")
+        return False
 
     def watch_the_screw(self) -> str:
         """The operator's eyes on the lead screw during the start's HOME (ACTUATOR_DIRECTION's advice): a motor wired
