@@ -18,7 +18,7 @@ from rigctl.core import PAPER_SENSOR, SensorLayout
 from rigctl.core.errors import describe_error
 from rigctl_gui.colours import ERROR, on_window
 from rigctl_gui.messages import escaped as _html  # a '<' in an error would cut a rich-text label short
-from rigctl_gui.staged import StagedBuild
+from rigctl_gui.staged import StagedBuild, StagedWidget
 from rigctl_gui.widgets import add_taxel_numbers, side_panel
 from rigctl_gui.workers import Job, ProcessJob
 
@@ -61,7 +61,7 @@ class _Views(QtWidgets.QTabWidget):
         return False
 
 
-class AnalysisTab(QtWidgets.QWidget):
+class AnalysisTab(StagedWidget, QtWidgets.QWidget):
     """The offline analysis tab; ``main`` is the :class:`rigctl_gui.app.MainWindow`."""
 
     heat_bar: pg.ColorBarItem  # the heat maps' one colour bar (:meth:`_build_trial_view`)
@@ -110,16 +110,6 @@ class AnalysisTab(QtWidgets.QWidget):
         self._build_confusion_tab()
         self._leftw.setEnabled(True)
         self._update_buttons()
-
-    @property
-    def building(self) -> bool:
-        """A staged build (``AnalysisTab(main, staged=True)``) is under way."""
-        return self._staged is not None and self._staged.running
-
-    def finish_build(self) -> None:
-        """Finish a staged build now (what needs the whole view: attach, a window change, a caller)."""
-        if self._staged is not None:
-            self._staged.finish()
 
     def _build_controls(self) -> QtWidgets.QWidget:
         """The left panel: file, trials, the analyses' options and buttons, the model trainer, the exports."""

@@ -39,7 +39,7 @@ from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl_gui import live_kernels
 from rigctl_gui.live_items import TimedGraphicsLayout, TracesItem, cache_axes_and_title, mark_containers
 from rigctl_gui.live_kernels import fill_raster
-from rigctl_gui.staged import StagedBuild
+from rigctl_gui.staged import StagedBuild, StagedWidget
 from rigctl_gui.widgets import StatusText, add_taxel_numbers
 from rigctl_gui.workers import LIVE_WINDOW_MAX_S, TraceBuffer
 
@@ -334,7 +334,7 @@ def _title_min(label: pg.LabelItem) -> None:
     label.updateGeometry()
 
 
-class LiveView(QtWidgets.QWidget):
+class LiveView(StagedWidget, QtWidgets.QWidget):
     """The live tab. Call :meth:`attach` with the taxel stream and a running :class:`rigctl_gui.workers.LiveEncoder`; the
     plots are rebuilt for the stream's layout (``layout`` is the one shown before anything is attached).
 
@@ -483,16 +483,6 @@ class LiveView(QtWidgets.QWidget):
     def time_plots(self) -> list:
         """Every plot on the shared time axis: the trace plots, then the SA and RA rasters."""
         return [*self.trace_plots, *self.raster_plots.values()]
-
-    @property
-    def building(self) -> bool:
-        """A staged build (``LiveView(staged=True)``) is under way: the plots are not all there yet."""
-        return self._staged is not None and self._staged.running
-
-    def finish_build(self) -> None:
-        """Finish a staged build now (what needs the whole view: attach, a window change, a caller)."""
-        if self._staged is not None:
-            self._staged.finish()
 
     def set_layout(self, layout: SensorLayout) -> None:
         """Build the plots for ``layout``: per layer a trace plot (one curve per taxel, a colour legend) and a rows

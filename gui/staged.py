@@ -9,7 +9,7 @@ from collections.abc import Iterator
 
 from PySide6 import QtCore
 
-__all__ = ["StagedBuild"]
+__all__ = ["StagedBuild", "StagedWidget"]
 
 
 class StagedBuild(QtCore.QObject):
@@ -50,3 +50,20 @@ class StagedBuild(QtCore.QObject):
             for _ in steps:
                 pass
             self.done.emit()
+
+
+class StagedWidget:
+    """What a widget built in steps offers its callers (a mixin before the Qt base class: ``class LiveView(StagedWidget,
+    QtWidgets.QWidget)``); the widget keeps its :class:`StagedBuild` in ``_staged`` (None when built at once)."""
+
+    _staged: StagedBuild | None = None
+
+    @property
+    def building(self) -> bool:
+        """A staged build (``staged=True``) is under way: the widget's parts are not all there yet."""
+        return self._staged is not None and self._staged.running
+
+    def finish_build(self) -> None:
+        """Finish a staged build now (what needs the whole widget: attach, a window change, a caller)."""
+        if self._staged is not None:
+            self._staged.finish()
