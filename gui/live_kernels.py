@@ -44,6 +44,23 @@ def decimated_length(n: int, width_px: int, first_index: int) -> int:
 
 
 @numba.njit(cache=True, nogil=True)
+def _copy_samples(t: Any, x: Any, now: float, start: int, stop: int, points: Any, lo: Any, hi: Any,
+                  j: int) -> int:  # pragma: no cover - compiled
+    """Samples ``start:stop`` as they are into ``points[:, j:]`` (their times from ``now``), widening ``lo``/``hi``;
+    the next free point index."""
+    for i in range(start, stop):
+        ti = t[i] - now
+        for c in range(x.shape[1]):
+            v = x[i, c]
+            points[c, j, 0] = ti
+            points[c, j, 1] = v
+            lo[c] = min(lo[c], v)
+            hi[c] = max(hi[c], v)
+        j += 1
+    return j
+
+
+@numba.njit(cache=True, nogil=True)
 def _decimate_traces(t: Any, x: Any, now: float, width_px: int, first_index: int, points: Any, lo: Any,
                      hi: Any) -> int:  # pragma: no cover - compiled
     n, k = x.shape
@@ -55,29 +72,12 @@ def _decimate_traces(t: Any, x: Any, now: float, width_px: int, first_index: int
     if n > width_px:
         step = -(-n // max(width_px // 2, 1))
     if step < 2:  # every sample as it is
-        for i in range(n):
-            ti = t[i] - now
-            for c in range(k):
-                v = x[i, c]
-                points[c, i, 0] = ti
-                points[c, i, 1] = v
-                lo[c] = min(lo[c], v)
-                hi[c] = max(hi[c], v)
-        m_out = n
+        m_out = _copy_samples(t, x, now, 0, n, points, lo, hi, 0)
     else:
         skip = (-first_index) % step
         m = (n - skip) // step
         end = skip + m * step
-        j = 0
-        for i in range(skip):  # the oldest partial bin as it is
-            ti = t[i] - now
-            for c in range(k):
-                v = x[i, c]
-                points[c, j, 0] = ti
-                points[c, j, 1] = v
-                lo[c] = min(lo[c], v)
-                hi[c] = max(hi[c], v)
-            j += 1
+        j = _copy_samples(t, x, now, 0, skip, points, lo, hi, 0)  # the oldest partial bin as it is
         for b in range(m):  # each full bin: its minimum at its first time, its maximum at its last
             a = skip + b * step
             t0 = t[a] - now
@@ -98,16 +98,7 @@ def _decimate_traces(t: Any, x: Any, now: float, width_px: int, first_index: int
                 lo[c] = min(lo[c], bmin)
                 hi[c] = max(hi[c], bmax)
             j += 2
-        for i in range(end, n):  # the newest partial bin as it is
-            ti = t[i] - now
-            for c in range(k):
-                v = x[i, c]
-                points[c, j, 0] = ti
-                points[c, j, 1] = v
-                lo[c] = min(lo[c], v)
-                hi[c] = max(hi[c], v)
-            j += 1
-        m_out = j
+        m_out = _copy_samples(t, x, now, end, n, points, lo, hi, j)  # the newest partial bin as it is
     for c in range(k):  # the unused tail repeats the last point: a fixed-length polyline draws nothing more
         for i in range(m_out, cap):
             points[c, i, 0] = points[c, m_out - 1, 0] if m_out else 0.0
