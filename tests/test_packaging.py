@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import site
 import subprocess
@@ -119,7 +120,8 @@ class ReadmeInstall:
         self.cache, self.work = root / "cache", root / "empty"
         self.work.mkdir()
         self.env = {k: v for k, v in os.environ.items()
-                    if k not in ("PYTHONPATH", "VIRTUAL_ENV", "NUMBA_CACHE_DIR", "RIGCTL_FIRMWARE_BUILD")}
+                    if k not in ("PYTHONPATH", "VIRTUAL_ENV", "NUMBA_CACHE_DIR", "RIGCTL_FIRMWARE_BUILD",
+                                 "RIGCTL_HOST_BUILD")}
         self.env.update(PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", PYTHONPATH=str(hook),
                         # --no-build-isolation and --no-warn-conflicts store False: pip takes the variable's value
                         # as the option's, so "0" turns them on
@@ -192,6 +194,38 @@ def test_the_installed_wheel_runs_from_an_empty_folder(venv, sim_session):
                                                 "--pcs", "1-3", "--no-progress")
     venv.rigctl("export", "nwb", str(sim_session), "--out", "q.nwb", "--no-progress")
     assert {"d.enc.h5", "d.h5", "q.nwb"} <= {p.name for p in venv.work.iterdir()}
+
+
+@pytest.mark.packaging
+def test_the_wheel_ships_the_compiled_controller_and_runs_with_no_compiler(venv, tmp_path):
+    """The README's ``pip install .`` built a platform wheel (``py3-none-linux_*``: the firmware's C compiled for the
+    host by setup.py's build step, not at first use) holding the drum controller's and the on-board encoder's
+    libraries with the digest of the sources they were built from; installed, it runs the model rig with no C
+    compiler on the PATH (nor $CC, nor $RIGCTL_HOST_BUILD) and never builds one into the user cache folder."""
+    wheel = next(venv.site_packages.glob("rigctl-*.dist-info")) / "WHEEL"
+    meta = wheel.read_text()
+    assert "Root-Is-Purelib: false" in meta and re.search(r"^Tag: py3-none-linux_\w+$", meta, re.M), meta
+    names = set(_installed_files(venv))
+    for name, lib in (("mega", "libmega_controller.so"), ("onboard", "libonboard_encoder.so")):
+        assert {f"rigctl/simulation/host_lib/{name}/{f}" for f in (lib, "ctl_t.cdef", "sources.sha256")} <= names
+    bare = str(venv.venv / "bin")  # the environment's own commands only: python, pip, rigctl
+    assert not any(shutil.which(cc, path=bare) for cc in ("cc", "gcc", "clang"))
+    env = {k: v for k, v in venv.run_env.items() if k not in ("CC", "RIGCTL_HOST_BUILD")}
+    env["PATH"] = bare
+    r = subprocess.run([str(venv.venv / "bin" / "rigctl"), "acquire", "quick_check", "--inprocess", "--out",
+                        str(tmp_path / "q.h5"), "--quiet"], capture_output=True, text=True, cwd=venv.work, env=env,
+                       timeout=300, stdin=subprocess.DEVNULL)
+    assert r.returncode == 0, (r.stdout[-1000:], r.stderr[-2000:])
+    loaded = subprocess.run([str(venv.python), "-c", "from rigctl.simulation import host_build, mega_c, onboard_c; "
+                             "mega_c.load(); onboard_c.load(); from rigctl import firmware; "
+                             "print([str(host_build.shipped(n, firmware.sources())) for n in host_build.LIBRARIES])"],
+                            capture_output=True, text=True, cwd=venv.work, env=env, timeout=120)
+    assert loaded.returncode == 0, loaded.stderr[-2000:]
+    assert loaded.stdout.strip() == str([str(venv.site_packages / "rigctl" / "simulation" / "host_lib" / n)
+                                         for n in ("mega", "onboard")])
+    assert not (venv.cache / "rigctl" / "host").exists()  # nothing built at first use, the README's run included
+    with h5py.File(tmp_path / "q.h5", "r") as f:
+        assert len(f["trials"]) == 6
 
 
 def _layout(path) -> dict[str, tuple]:

@@ -8,8 +8,9 @@ the host's ARM, ENCODE, SPEED and FINISH reach it. It models fast (a scan in mil
 the host starts it late, e.g. on 100 scans (``scripts/onboard_entry.py``); the image's timing (its loop, the link)
 stays simavr's.
 
-Built like the drum controller's library (:func:`rigctl.simulation.mega_c.build_shared`: the host's C compiler, a
-cache folder named by the sources' digest, ``onboard/`` inside it; HostBuildError without a compiler).
+Shipped in a platform wheel or built like the drum controller's library (:mod:`rigctl.simulation.host_build`: the
+host's C compiler, a cache folder named by the sources' digest, ``onboard/`` inside it; HostBuildError without a
+compiler).
 """
 
 from __future__ import annotations
@@ -22,51 +23,34 @@ from typing import Any
 import numpy as np
 
 from rigctl import firmware
-from rigctl.simulation import mega_c
+from rigctl.simulation import host_build, mega_c
 
 __all__ = ["SOURCES", "BoardModel", "BoardResult", "build", "load"]
 
+_ONBOARD = host_build.LIBRARIES["onboard"]
 #: the C sources, relative to the firmware source folder
-SOURCES = ("common/sa_ring.c", "common/sa_encoder.c", "host_model/onboard_host.c")
-_HEADERS = ("common/sa_ring.h", "common/sa_encoder.h", "host_model/onboard_host.h")
-#: the Uno image's kernel (-DSA_FIXED, plain C products: the same integers as its inline MUL code)
-_FLAGS = ("-O2", "-fPIC", "-shared", "-std=c11", "-DSA_FIXED")
-_LIB = "libonboard_encoder.so"
+SOURCES = _ONBOARD.sources
 _N_TAXELS, _N_WINDOWS = 9, 20
-_CDEF = """
-typedef struct onboard_host onboard_host_t;
-size_t onboard_host_sizeof(void);
-void onboard_host_arm(void *b, const uint16_t lo[9], const uint16_t hi[9], uint16_t k);
-uint8_t onboard_host_push(void *b, const uint16_t x[9]);
-uint16_t onboard_host_begin(void *b, uint16_t from);
-uint8_t onboard_host_step(void *b, uint16_t *mask);
-int8_t onboard_host_speed(void *b, uint16_t speed_cmm_s);
-void onboard_host_finish(void *b, uint16_t speed_cmm_s);
-void onboard_host_counts(const void *b, uint16_t counts[180]);
-uint32_t onboard_host_samples(const void *b);
-uint32_t onboard_host_held(const void *b);
-uint16_t onboard_host_dropped(const void *b);
-uint8_t onboard_host_depth_max(const void *b);
-"""
 
 
 def build(src: Path | None = None) -> Path:
     """Build the library from ``src`` (default the installed firmware sources) unless it is there; returns its
     folder. HostBuildError."""
     src = src or firmware.sources()
-    out = mega_c.build_dir(src, files=(*SOURCES, *_HEADERS), flags=_FLAGS) / "onboard"
-    return mega_c.build_shared(src, out, sources=SOURCES, headers=_HEADERS, flags=_FLAGS, lib=_LIB,
-                               what="the on-board encoder's sa_ring.c and sa_encoder.c", cdef=_CDEF)
+    out = mega_c.build_dir(src, files=(*SOURCES, *_ONBOARD.headers), flags=_ONBOARD.flags) / "onboard"
+    return host_build.build_library("onboard", src, out)
 
 
 @functools.cache
 def load() -> tuple[Any, Any]:
-    """``(ffi, lib)`` of the installed sources' library (built at first use in the process). HostBuildError."""
+    """``(ffi, lib)`` of the library the installed package ships for its sources, else of :func:`build` (at first use
+    in the process). HostBuildError."""
     import cffi
 
     ffi = cffi.FFI()
-    ffi.cdef(_CDEF)
-    return ffi, ffi.dlopen(str(build() / _LIB))
+    ffi.cdef(str(_ONBOARD.cdef))
+    folder = host_build.shipped("onboard", firmware.sources()) or build()
+    return ffi, ffi.dlopen(str(folder / _ONBOARD.lib))
 
 
 @dataclass(frozen=True)

@@ -49,3 +49,45 @@ def test_no_c_compiler_is_one_line_and_nothing_written(tmp_path):
     assert proc.returncode == 1 and len(lines) == 1, (proc.returncode, lines)
     assert "no host C compiler (cc, gcc or clang)" in lines[0] and "apt-get install gcc" in lines[0], lines
     assert not out.exists()
+
+
+def test_a_shipped_library_is_loaded_only_for_the_sources_it_was_built_from(tmp_path, monkeypatch):
+    """What a platform wheel's build puts in the package (host_build.build_into_package, as setup.py calls it) is
+    found by host_build.shipped for the same sources, and opens; one changed byte of a source and it is not (the model
+    rig then builds from the sources it runs, as an sdist or editable install does)."""
+    import shutil
+
+    from rigctl import firmware
+    from rigctl.simulation import host_build, mega_c
+
+    src = tmp_path / "arduino"
+    shutil.copytree(firmware.sources(), src)
+    package = tmp_path / "host_lib"
+    written = host_build.build_into_package(src, package)
+    assert sorted(p.relative_to(package).as_posix() for p in package.rglob("*") if p.is_file()) == sorted(
+        p.relative_to(package).as_posix() for p in written)
+    assert {"mega/libmega_controller.so", "onboard/libonboard_encoder.so", "mega/sources.sha256"} <= {
+        p.relative_to(package).as_posix() for p in written}
+    monkeypatch.setattr(host_build, "SHIPPED", package)
+    for name in host_build.LIBRARIES:
+        assert host_build.shipped(name, src) == package / name
+    ffi, lib = mega_c.open_library(package / "mega")
+    c = ffi.new("ctl_t *")
+    lib.ctl_init(c, 0, 0)
+    assert c.state == 6  # NOT_HOMED
+    steprate = src / "mega_drum" / "steprate.c"
+    steprate.write_text(steprate.read_text() + "\n")
+    assert host_build.shipped("mega", src) is None and host_build.shipped("onboard", src) == package / "onboard"
+
+
+def test_setup_py_loads_host_build_with_the_standard_library_only():
+    """setup.py loads rigctl/simulation/host_build.py by its path in a build environment without rigctl's
+    dependencies: it imports nothing but the standard library."""
+    import ast
+
+    tree = ast.parse((REPO / "rigctl" / "simulation" / "host_build.py").read_text())
+    imported = {alias.name.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.Import)
+                for alias in node.names}
+    imported |= {node.module.split(".")[0] for node in ast.walk(tree)
+                 if isinstance(node, ast.ImportFrom) and node.module}
+    assert imported <= set(sys.stdlib_module_names) | {"__future__"}, imported
