@@ -101,10 +101,12 @@ def _length_warning(path) -> None:
     try:
         with open_encoded(path) as f:
             trials = f.trials
+            operator_paced = bool(f.attrs.get("operator_paced", False))  # a handheld session's scans
     except (NotEncodedError, OSError, ValueError, KeyError):
         return
     line = length_imbalance(trials["texture"], trials["duration_s"], speed_mm_s=trials.get("speed_mm_s"),
-                            force_g=trials.get("force_g"))
+                            force_g=trials.get("force_g"), profile=trials.get("profile"),
+                            operator_paced=operator_paced)
     if line:
         click.echo(f"warning: {path}: {line}", err=True)
 

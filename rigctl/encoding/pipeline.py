@@ -194,6 +194,12 @@ def _plan_labels(session, ids):
     }
 
 
+def _operator_paced(session, ids) -> bool:
+    """Whether the trials' lengths are the operator's: a handheld scan's boundaries are positions on the plate
+    (``boundary = "position"``, rigctl.acquisition.handheld), so its length is the operator's speed."""
+    return bool(ids) and session.trial_attrs(int(ids[0])).get("boundary") == "position"
+
+
 def _recordings(session, ids) -> dict[str, np.ndarray]:
     """An imported session's source recording per trial (``recording``: file, ``[block]`` of a stacked file) and
     where in it the trial starts (``recording_start_s``), from the trial attributes ``rigctl import`` writes; {}
@@ -350,7 +356,8 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     t_start = time.time()
     read = _range_pass(run, p, progress)  # pass 1: labels, per-taxel range, the model input kept for the fit
     imbalance = length_imbalance(read.labels["texture"], read.duration_s, speed_mm_s=read.labels["speed_mm_s"],
-                                 force_g=read.labels["force_g"])
+                                 force_g=read.labels["force_g"], profile=read.labels["profile"],
+                                 operator_paced=read.operator_paced)
     if imbalance:  # a label hidden in the trial length (rigctl.encoding.lengths)
         warnings.warn(f"{run.session_path}: {imbalance}", stacklevel=2)
     variants_, skipped = _check_speeds(run.variants, run.explicit, read.labels, read.has_trace)
@@ -369,6 +376,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                                "range_from": "" if run.taxel_range is None else str(run.taxel_range.source),
                                "excluded_trials": {str(k): v for k, v in read.excluded.items()},
                                "lossy_trials": sorted(read.lossy), "lost_frames": int(sum(read.lossy.values())),
+                               "operator_paced": read.operator_paced,
                                PROVENANCE_ATTR: provenance_json(_provenance(run, p))})
     try:
         _write_tables(writer, run, p, read, force)
@@ -459,6 +467,8 @@ class _Read:
     offset: np.ndarray
     scale: np.ndarray
     rng: TaxelRange
+    #: the trials' lengths are the operator's (a handheld session: scans bounded by positions on the plate)
+    operator_paced: bool = False
 
     @property
     def duration_s(self) -> np.ndarray:
@@ -520,7 +530,7 @@ def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | No
         batches = [np.arange(i, min(i + bt, len(ids))) for i in range(0, len(ids), bt)]
         read = _Read(s.layout, s.textures, ids, labels, conv, batches, keep_all, [], [], np.zeros(0, np.int64),
                      np.zeros(len(ids), dtype=np.int64), np.zeros(len(ids), dtype=bool), {}, excluded,
-                     np.zeros(0), np.zeros(0), TaxelRange())
+                     np.zeros(0), np.zeros(0), TaxelRange(), _operator_paced(s, ids))
         if not kernels_cached():
             progress_note(progress, "reading trials", "compiling the encoding kernels (first run only: numba "
                                                       "caches them) ...")

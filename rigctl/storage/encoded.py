@@ -28,7 +28,9 @@ Layout (schema :data:`ENCODED_SCHEMA_VERSION` = 3)::
            texture_set (JSON, rigctl.core.textures.TextureSet), parameters (JSON, EncodeParams), variants (JSON
            list), n_trials, n_taxels, input_rate_hz, model_rate_hz, resampled (bool), resampling (text),
            windows_note (text), skipped_variants (JSON {variant: reason}), feature_layout (text),
-           source_session, encode_seconds, force_coefficients*_note / _n_not_converged / _n_coefficients
+           source_session, encode_seconds, force_coefficients*_note / _n_not_converged / _n_coefficients,
+           operator_paced (bool: the trials' lengths are the operator's, a handheld session's scans; the length
+           warning of rigctl.encoding.lengths reads it)
 
 Schema 2 stored every variant's spike trains as gzip-compressed float64 ``spike_times`` (4 x 8 bytes a spike for
 the paper's variants, written at ~80 MB per CPU-second); it still opens, as the same :class:`SpikeArrays`. Schema 3
