@@ -61,6 +61,10 @@ def _checked_segment(ctx, param, value):
 @click.option("--min-swing", type=floats(0, 1e6, min_open=True), default=None, metavar="RATIO",
               help="threshold/cycles: the presses' swing must reach RATIO x the noise at rest, unless (cycles) the "
                    "activity is clearly periodic [default: 10].")
+@click.option("--press-period-s", type=floats(0, 1e6, min_open=True), default=None, metavar="S",
+              help="cycles: the rig's press period, s, when known: the presses are counted against it (a press the "
+                   "file lacks is missed, a bump off the rig's period is no press); without it, against rigctl's own "
+                   "press finder (said). A file's own (mapping [files.NAME] or an NPZ's press_period_s) goes first.")
 @click.option("--mapping", type=click.Path(exists=True, dir_okay=False), default=None,
               help="TOML mapping giving any of these values, per-file labels and the texture set.")
 @click.option("--volts-ref", type=floats(0, MAX_VOLTS, min_open=True), default=None, metavar="V",
@@ -107,7 +111,8 @@ def _checked_segment(ctx, param, value):
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @progress_option
 def import_recordings(files, out, rate_hz, channels, layout, label_pattern, texture, resample_hz, segment_spec,
-                      align, pre_ms, min_swing, mapping, volts_ref, scale, clip, close_gaps, offset, columns, time_column, time_unit,
+                      align, pre_ms, min_swing, press_period_s, mapping, volts_ref, scale, clip, close_gaps, offset,
+                      columns, time_column, time_unit,
                       repeated_stamps, variable, nan, adc_bits, preset, skip_bad, overwrite, as_json, progress):
     """Import FILES (format from the extension: .csv, .npy, .npz, .mat, .nwb) into the session file --out.
 
@@ -126,7 +131,7 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
     options = {k: v for k, v in (("close_gaps", close_gaps), ("clip", clip)) if v} if preset else dict(
         rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern, texture=texture,
         resample_hz=resample_hz, segment_spec=segment_spec, align=align, pre_ms=pre_ms, min_swing=min_swing,
-        mapping=mapping,
+        press_period_s=press_period_s, mapping=mapping,
         volts_ref=volts_ref, adc_bits=adc_bits, nan=nan, skip_bad=skip_bad, scale=scale, offset=offset, clip=clip, close_gaps=close_gaps,
         columns=[c.strip() for c in columns.split(",") if c.strip()] if columns else None,
         time_column=time_column, time_unit=time_unit, repeated_stamps=repeated_stamps, variable=variable)

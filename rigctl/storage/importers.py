@@ -94,7 +94,14 @@ from rigctl.storage.recording_files import (
     fill_nan,
     read_recording_file,
 )
-from rigctl.storage.segmentation import Segmentation, SegmentSpec, outlier_warnings, parse_segment, segment
+from rigctl.storage.segmentation import (
+    Segmentation,
+    SegmentSpec,
+    declared_press_period,
+    outlier_warnings,
+    parse_segment,
+    segment,
+)
 from rigctl.storage.time_column import gaps_text, grid_text, onto_grid
 
 __all__ = [
@@ -293,7 +300,7 @@ MAX_MAPPING_BYTES = 16 << 20
 
 #: keys a TOML mapping may hold (module docstring)
 MAPPING_KEYS = ("rate_hz", "channels", "layout", "sensor", "adc_bits", "volts_ref", "scale", "offset",
-                "label_pattern", "resample_hz", "segment", "align", "pre_ms", "min_swing", "nan", "variable", "columns",
+                "label_pattern", "resample_hz", "segment", "align", "pre_ms", "min_swing", "press_period_s", "nan", "variable", "columns",
                 "time_column", "time_unit", "repeated_stamps", "clip", "close_gaps", "defaults", "files", "texture_set")
 
 
@@ -437,6 +444,9 @@ class ImportOptions:
     #: gaps inside a trial's time stamps (a CSV time column, an NWB series', an XDF stream's, frames lost) are
     #: closed (interpolated across or joined back to back: declared in the ledger) instead of refused
     close_gaps: bool = False
+    #: the rig's press period, s (--press-period-s): cycles' presses are counted against it (else against rigctl's
+    #: press finder); a file's own (the mapping's ``[files."NAME"]`` or an NPZ's ``press_period_s``) goes first
+    press_period_s: float | None = None
     per_file: Mapping[str, Any] = field(default_factory=dict)
     defaults: Mapping[str, Any] = field(default_factory=dict)
     texture_set: Mapping[str, Any] | None = None
@@ -474,6 +484,7 @@ class ImportOptions:
                    variable=pick("variable"), columns=pick("columns"), time_column=pick("time_column"),
                    time_unit=pick("time_unit"), repeated_stamps=pick("repeated_stamps", "refuse"),
                    clip=bool(pick("clip", False)), close_gaps=bool(pick("close_gaps", False)),
+                   press_period_s=declared_press_period(pick("press_period_s"), "--press-period-s", segment),
                    per_file=m.get("files", {}) or {}, defaults=defaults, texture_set=m.get("texture_set"))
 
     def value_scale(self, n_clipped: int) -> dict[str, Any]:
@@ -498,6 +509,8 @@ def _file_labels(path: Path, opts: ImportOptions, rx: re.Pattern[str] | None) ->
     for key in (path.name, path.stem, str(path)):
         if key in opts.per_file:
             for k, v in opts.per_file[key].items():
+                if k == "press_period_s":  # the rig's, not a label (_Import.rig_period)
+                    continue
                 labels.update(_label_value(k, v) if k in UNIT_FIELDS or k in _FIELD_ALIASES else {k: v})
     moved = {k: v for k, v in labels.items() if k.endswith("_as_labelled")}
     extra.update(moved)
@@ -558,12 +571,27 @@ class _Import:
         self.steps["read"].append({"file": str(path), **meta, "rate_hz": src_rate, "blocks": len(blocks)})
         attrs = {"source_file": path.name, "source_format": meta["format"], "source_rate_hz": src_rate,
                  **{k: str(v) for k, v in extra.items()}}
+        rig = self.rig_period(path, meta)
         for bi, block in enumerate(blocks):
             lab = dict(labels)
             if block_labels:
                 lab.update({k: (str(v) if k == "texture" else float(v)) for k, v in block_labels[bi].items()})
             self._add_block(path, bi, len(blocks), self._counts(path, block, src_rate), lab,
-                            {**attrs, **({"source_block": bi} if len(blocks) > 1 else {})})
+                            {**attrs, **({"source_block": bi} if len(blocks) > 1 else {})}, rig)
+
+    def rig_period(self, path: Path, meta: Mapping[str, Any]) -> tuple[float | None, str]:
+        """The rig's press period for ``path``, s, and where it was declared: the file's own (the mapping's
+        ``[files."NAME"] press_period_s``, else an NPZ's ``press_period_s``), else the import's (--press-period-s,
+        the mapping's ``press_period_s``); None when nobody declared it."""
+        for key in (path.name, path.stem, str(path)):
+            own = (self.opts.per_file.get(key) or {}).get("press_period_s")
+            if own is not None:
+                where = f'the mapping\'s [files."{key}"]'
+                return declared_press_period(own, f"{path}: {where} press_period_s"), where
+        if meta.get("press_period_s") is not None:
+            return declared_press_period(meta["press_period_s"], f"{path}: press_period_s"), \
+                f"{path.name}'s press_period_s"
+        return self.opts.press_period_s, "--press-period-s"
 
     def _name_gaps(self, path: Path, meta: dict[str, Any]) -> None:
         """Refuse the holes inside a trial that an NWB series' or an XDF stream's own time stamps or a CSV time
@@ -628,11 +656,12 @@ class _Import:
         return counts
 
     def _add_block(self, path: Path, bi: int, n_blocks: int, counts: np.ndarray, labels: dict[str, Any],
-                   attrs: dict[str, Any]) -> None:
-        """Segment step: the block's trials, each with its provenance (file, first and last sample, cycle)."""
+                   attrs: dict[str, Any], rig: tuple[float | None, str] = (None, "")) -> None:
+        """Segment step: the block's trials, each with its provenance (file, first and last sample, cycle); ``rig``:
+        the rig's press period, s, and where it was declared (:meth:`rig_period`)."""
         spec, rate = self.opts.segment, float(self.out_rate or 0.0)
         try:
-            cut = segment(counts, rate, spec)
+            cut = segment(counts, rate, spec, rig_period_s=rig[0], rig_period_from=rig[1])
         except RecordingImportError as exc:
             raise RecordingImportError(f"{path}: {exc}") from None
         if spec is None and counts.shape[0] >= LONG_TRIAL_S * rate > 0:

@@ -338,6 +338,8 @@ def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = 
         arr, meta["variable"], meta["candidates"] = _pick(arrays, variable, str(path))
         if "rate_hz" in arrays and np.asarray(arrays["rate_hz"]).size == 1:
             rate = float(arrays["rate_hz"])
+        if "press_period_s" in arrays and np.asarray(arrays["press_period_s"]).size == 1:  # the rig's, s
+            meta["press_period_s"] = float(arrays["press_period_s"])
     elif fmt == "mat":
         arr, meta["variable"], meta["candidates"] = _read_mat(path, variable)
     elif fmt == "xdf":

@@ -48,7 +48,7 @@ import numpy as np
 from rigctl.storage.recording_files import RecordingImportError
 
 __all__ = ["SegmentSpec", "Segmentation", "Activity", "ALIGNS", "parse_segment", "activity", "segment",
-           "segment_table", "outlier_warnings", "press_check"]
+           "segment_table", "outlier_warnings", "press_check", "rig_slots", "FINDER", "declared_press_period"]
 
 #: ``--align``: cut cycles at each press onset, or from sample 0 (the former rule)
 ALIGNS = ("onset", "none")
@@ -116,6 +116,14 @@ class SegmentSpec:
         return {"method": self.method, **{k: v for k, v in asdict(self).items() if k in keep and v is not None}}
 
 
+#: what presses are counted against when the rig's press period is not known (:attr:`Segmentation.press_basis`)
+FINDER = "rigctl's press finder"
+#: a period found further than this fraction from the rig's declared one is named (:attr:`Segmentation.press_problem`)
+RIG_PERIOD_TOLERANCE = 0.1
+#: against the rig's period, a press found within this fraction of it from a slot of the rig's period is that slot's
+#: press (the walk then restarts from it: a rig's cycles jitter and drift)
+SLOT_TOLERANCE = 0.2
+
 #: a trial overlapping the next one by more than this share of its length is named (:meth:`Segmentation.overlaps`)
 OVERLAP_FRACTION = 0.2
 
@@ -141,19 +149,40 @@ class Segmentation:
     onsets: list[int] = field(default_factory=list)
     candidates: list[dict[str, float]] = field(default_factory=list)
     presses: dict[str, int] | None = None
+    #: the rig's press period, s, when known (declared with --press-period-s or a mapping, or in the file), and
+    #: where it came from; the presses are then counted against it, else against :data:`FINDER`
+    rig_period_s: float | None = None
+    rig_period_from: str | None = None
+
+    @property
+    def press_basis(self) -> str | None:
+        """What the presses were counted against: ``"the rig's period 4.00 s (--press-period-s)"``, :data:`FINDER`,
+        or None (no press check: not cut into cycles)."""
+        if self.presses is None:
+            return None
+        if self.rig_period_s is None:
+            return FINDER
+        return f"the rig's period {self.rig_period_s:.2f} s ({self.rig_period_from or 'declared'})"
 
     @property
     def press_problem(self) -> str | None:
-        """One line when the trials do not follow the presses one by one (``"21 of 41 presses cut as trials: 20
-        missed, ..."``), else None."""
+        """One line when the trials do not follow the presses one by one (``"21 of 41 presses cut as trials press by
+        press (20 missed: 20 not in the file ...; counted against the rig's period 4.00 s (--press-period-s))"``),
+        else None. The line says what the presses were counted against (:attr:`press_basis`)."""
         c = self.presses
         if not c or (c["cut"] == c["presses"] and not c["off_onset"] and not c["wrong_count"]):
             return None
-        parts = [f"{c['missed']} missed" if c["missed"] else "",
+        absent = c.get("absent", 0)
+        parts = [f"{c['missed']} missed" + (f": {absent} not in the file (no press found at its time)" if absent
+                                             else "") if c["missed"] else "",
                  f"{c['off_onset']} trials start off a press onset" if c["off_onset"] else "",
                  f"{c['wrong_count']} trials hold another number of presses than asked" if c["wrong_count"] else ""]
-        return (f"{c['cut']} of {c['presses']} presses cut as trials press by press ("
-                + ", ".join(x for x in parts if x) + ")")
+        if self.rig_period_s and self.period_s and abs(self.period_s / self.rig_period_s - 1) > RIG_PERIOD_TOLERANCE:
+            parts.append(f"the period found, {self.period_s:.2f} s, is not the rig's")
+        basis = self.press_basis or FINDER
+        hint = (": give the rig's press period with --press-period-s to count against it" if basis == FINDER else "")
+        return (f"{c['cut']} of {c['presses']} presses cut as trials press by press (" + ", ".join(x for x in parts if x)
+                + f"; counted against {basis}{hint})")
 
     def overlaps(self) -> tuple[int, int]:
         """``(trials, samples)``: how many trials run into the next one's start by more than
@@ -169,7 +198,8 @@ class Segmentation:
         overlapping, shared = self.overlaps()
         return {"file": file, "period_s": self.period_s, "trials": len(self.bounds), "rejected": self.rejected,
                 "first_start_s": first, "overlapping": overlapping, "shared_samples": shared,
-                "presses": None if self.presses is None else dict(self.presses), "press_problem": self.press_problem}
+                "presses": None if self.presses is None else dict(self.presses),
+                "presses_against": self.press_basis, "press_problem": self.press_problem}
 
 
 def _number(text: str, spec: str) -> float:
@@ -180,6 +210,23 @@ def _number(text: str, spec: str) -> float:
     if not (math.isfinite(value) and value >= 0):
         raise RecordingImportError(f"--segment {spec!r}: {text} is not a positive number; {_USAGE}")
     return value
+
+
+def declared_press_period(value: Any, where: str, segment: SegmentSpec | None = None) -> float | None:
+    """A declared press period, s (None: not declared); RecordingImportError for one that is not a number > 0, or
+    (``segment`` given) for an import that does not cut cycles at their onsets (nothing to count against it)."""
+    if value is None:
+        return None
+    try:
+        period = float(value)
+    except (TypeError, ValueError):
+        period = math.nan
+    if not (math.isfinite(period) and period > 0):
+        raise RecordingImportError(f"{where} {value!r}: the rig's press period must be a number of seconds > 0")
+    if segment is not None and not (segment.method == "cycles" and segment.align == "onset"):
+        raise RecordingImportError(f"{where}: the rig's press period counts the presses of --segment cycles (cut at "
+                                   f"each onset); this import cuts by {segment.method}")
+    return period
 
 
 def parse_segment(spec: str | None, *, align: str | None = None, pre_ms: float | None = None,
@@ -436,7 +483,7 @@ def _threshold(counts: np.ndarray, rate_hz: float, spec: SegmentSpec) -> Segment
     return Segmentation(bounds, index, rejected=len(runs) - len(bounds))
 
 
-def _cycles(counts: np.ndarray, rate_hz: float, spec: SegmentSpec) -> Segmentation:
+def _cycles(counts: np.ndarray, rate_hz: float, spec: SegmentSpec, rig_period: int | None = None) -> Segmentation:
     n = counts.shape[0]
     if spec.align == "none":
         period = _acf_period(counts, rate_hz, spec.min_period_s, spec.max_period_s)
@@ -472,7 +519,7 @@ def _cycles(counts: np.ndarray, rate_hz: float, spec: SegmentSpec) -> Segmentati
     phase = _merge_presses(np.asarray(sorted(set(phase)), dtype=np.int64), int(0.5 * period)).tolist()
     return Segmentation(bounds, index, rejected=rejected, period_s=period / rate_hz, onsets=kept.tolist(),
                         candidates=candidates,
-                        presses=press_check(phase, bounds, n, pre=pre, n_cycles=spec.n_cycles))
+                        presses=press_check(phase, bounds, n, pre=pre, n_cycles=spec.n_cycles, period=rig_period))
 
 
 #: a trial starts at a press onset when its start (plus the margin) is within this fraction of the median press
@@ -480,22 +527,32 @@ def _cycles(counts: np.ndarray, rate_hz: float, spec: SegmentSpec) -> Segmentati
 ONSET_TOLERANCE = 0.05
 
 
-def press_check(onsets: Sequence[int], bounds: Sequence[tuple[int, int]], n: int, *, pre: int, n_cycles: int
-                ) -> dict[str, int]:
+def press_check(onsets: Sequence[int], bounds: Sequence[tuple[int, int]], n: int, *, pre: int, n_cycles: int,
+                period: int | None = None) -> dict[str, int]:
     """The trials checked against the file's press phase, press by press.
 
     ``onsets``: every press onset found (before any merging), samples; ``bounds``: the trials; ``n``: the file's
-    samples; ``pre``: the margin before each onset; ``n_cycles``: presses a trial should hold. A press can be cut
-    when its whole cycle (the median press interval) lies in the file after the margin. A trial is right when its
-    start plus ``pre`` lies within :data:`ONSET_TOLERANCE` of the median interval of an onset and it holds
-    ``n_cycles`` onsets; the presses it starts are then cut right. Returns ``{"presses": cuttable presses, "cut":
-    presses cut right, "missed": cuttable presses in no right trial, "off_onset": trials starting off every onset,
-    "wrong_count": trials holding another number of presses}``."""
+    samples; ``pre``: the margin before each onset; ``n_cycles``: presses a trial should hold; ``period``: the rig's
+    press period, samples, when known (None: the presses are the onsets rigctl found).
+
+    Without ``period`` the presses are the onsets found (rigctl's press finder: a press it did not find is not
+    counted, a bump it took for one is). With it they are the rig's: one every ``period`` from the first press found
+    to the last (:func:`rig_slots`), whether or not a press was found there (``absent``: none was), and an onset
+    found off every slot is not a press. A press can be cut when its whole cycle (the median press interval, or
+    ``period``) lies in the file after the margin. A trial is right when its start plus ``pre`` lies within
+    :data:`ONSET_TOLERANCE` of the interval of a press and it holds ``n_cycles`` presses; the presses it starts are
+    then cut right. Returns ``{"presses": cuttable presses, "cut": presses cut right, "missed": cuttable presses in
+    no right trial, "off_onset": trials starting off every press, "wrong_count": trials holding another number of
+    presses, "absent": cuttable presses of the rig with no press found at their time (0 without ``period``)}``."""
     on = np.asarray(sorted(onsets), dtype=np.int64)
-    if on.size < 2:
+    absent = np.zeros(on.size, dtype=bool)
+    if period is not None and period >= 2 and on.size:
+        on, found = rig_slots(on, period)
+        absent = ~found
+    if on.size < 2 and period is None:
         return {"presses": int(on.size), "cut": 0, "missed": int(on.size), "off_onset": len(bounds),
-                "wrong_count": 0}
-    interval = float(np.median(np.diff(on)))
+                "wrong_count": 0, "absent": 0}
+    interval = float(period) if period is not None else float(np.median(np.diff(on)))
     tol = max(2.0, ONSET_TOLERANCE * interval)
     cuttable = (on - pre >= 0) & (on + interval <= n)
     right = np.zeros(on.size, dtype=bool)
@@ -503,7 +560,7 @@ def press_check(onsets: Sequence[int], bounds: Sequence[tuple[int, int]], n: int
     for a, b in bounds:
         start = a + pre
         k = int(np.argmin(np.abs(on - start)))
-        if abs(on[k] - start) > tol:
+        if abs(on[k] - start) > tol or absent[k]:
             off_onset += 1
             continue
         held = np.flatnonzero((on >= on[k]) & (on < b - tol))
@@ -513,12 +570,44 @@ def press_check(onsets: Sequence[int], bounds: Sequence[tuple[int, int]], n: int
         right[held] = True
     cut = int((right & cuttable).sum())
     return {"presses": int(cuttable.sum()), "cut": cut, "missed": int(cuttable.sum()) - cut, "off_onset": off_onset,
-            "wrong_count": wrong_count}
+            "wrong_count": wrong_count, "absent": int((absent & cuttable).sum())}
 
 
-def segment(counts: np.ndarray, rate_hz: float, spec: SegmentSpec | None) -> Segmentation:
+def rig_slots(onsets: np.ndarray, period: int) -> tuple[np.ndarray, np.ndarray]:
+    """The rig's presses at its ``period`` (samples) among the sorted press ``onsets`` found: ``(slots, found)``,
+    the sample of each press of the rig from the first press found to the last, and whether a press was found there.
+
+    A walk from one found onset steps ``period`` both ways; a found onset within :data:`SLOT_TOLERANCE` x
+    ``period`` of the next step is that press (the walk goes on from it: cycles jitter and drift), else the press
+    is missing at the step's time. The walk starts from the onset whose walk finds the most presses (a bump taken
+    for a press, off the rig's phase, is then no press), ties the earliest."""
+    tol = SLOT_TOLERANCE * period
+    best: tuple[int, np.ndarray, np.ndarray] | None = None
+    for start in onsets.tolist():
+        slots, found = [start], [True]
+        for step in (period, -period):
+            t = start
+            while onsets[0] - tol <= t + step <= onsets[-1] + tol:
+                t += step
+                k = int(np.argmin(np.abs(onsets - t)))
+                hit = abs(int(onsets[k]) - t) <= tol
+                t = int(onsets[k]) if hit else t
+                slots.append(t)
+                found.append(hit)
+        order = np.argsort(slots, kind="stable")
+        got = (int(np.sum(found)), np.asarray(slots, dtype=np.int64)[order], np.asarray(found, dtype=bool)[order])
+        if best is None or got[0] > best[0]:
+            best = got
+    assert best is not None
+    return best[1], best[2]
+
+
+def segment(counts: np.ndarray, rate_hz: float, spec: SegmentSpec | None, *, rig_period_s: float | None = None,
+            rig_period_from: str = "--press-period-s") -> Segmentation:
     """Cut a continuous ``(n, n_channels)`` recording at ``rate_hz`` into trials by ``spec`` (module docstring);
-    None: the whole recording is one trial. Raises RecordingImportError when no cycle can be found."""
+    None: the whole recording is one trial. ``rig_period_s``: the rig's press period, s, when known (and
+    ``rig_period_from``, where it was declared): cycles' presses are then counted against it (:func:`press_check`),
+    else against rigctl's own press finder. Raises RecordingImportError when no cycle can be found."""
     n = counts.shape[0]
     if spec is None:
         return Segmentation([(0, n)], [0])
@@ -526,7 +615,10 @@ def segment(counts: np.ndarray, rate_hz: float, spec: SegmentSpec | None) -> Seg
         return _fixed(n, rate_hz, spec)
     if spec.method == "threshold":
         return _threshold(counts, rate_hz, spec)
-    return _cycles(counts, rate_hz, spec)
+    cut = _cycles(counts, rate_hz, spec, None if rig_period_s is None else int(round(rig_period_s * rate_hz)))
+    if rig_period_s is not None and cut.presses is not None:
+        cut.rig_period_s, cut.rig_period_from = float(rig_period_s), rig_period_from
+    return cut
 
 
 # ----------------------------------------------------------------------------------------------------- reporting
@@ -539,14 +631,21 @@ def _presses_cell(row: Mapping[str, Any]) -> str:
 
 def segment_table(rows: Sequence[Mapping[str, Any]]) -> str:
     """The per-file table (file, period, trials, rejected, first trial's start, presses cut press by press of the
-    presses that could be: ``41/41``, or ``21/41 FLAGGED``) as aligned text lines."""
+    presses that could be: ``41/41``, or ``21/41 FLAGGED``) as aligned text lines, and a last line saying what the
+    presses were counted against (the rig's period, or rigctl's press finder) when a row has presses."""
     head = ("file", "period s", "trials", "rejected", "first at s", "presses cut")
     body = [(str(r["file"]), "-" if r.get("period_s") is None else f"{r['period_s']:.2f}", str(r["trials"]),
              str(r["rejected"]), "-" if r.get("first_start_s") is None else f"{r['first_start_s']:.2f}",
              _presses_cell(r)) for r in rows]
     widths = [max(len(row[i]) for row in [head, *body]) for i in range(len(head))]
-    return "\n".join("  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
-                     for row in [head, *body])
+    lines = ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
+             for row in [head, *body]]
+    bases = list(dict.fromkeys(str(r["presses_against"]) for r in rows if r.get("presses_against")))
+    if bases:  # what "presses" means in the last column: the rig's presses, or those rigctl found
+        finder = ("; give the rig's press period with --press-period-s to count against it" if FINDER in bases
+                  else "")
+        lines.append(f"presses cut: counted against {' / '.join(bases)}{finder}")
+    return "\n".join(lines)
 
 
 def outlier_warnings(rows: Sequence[Mapping[str, Any]]) -> list[str]:

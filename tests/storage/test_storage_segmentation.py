@@ -273,7 +273,7 @@ def test_press_check_counts_presses_cut_one_by_one():
     n = 4300
     every = [(o, o + 100) for o in onsets]
     assert press_check(onsets, every, n, pre=0, n_cycles=1) == {"presses": 41, "cut": 41, "missed": 0,
-                                                                  "off_onset": 0, "wrong_count": 0}
+                                                                  "off_onset": 0, "wrong_count": 0, "absent": 0}
     half = every[::2]
     got = press_check(onsets, half, n, pre=0, n_cycles=1)
     assert (got["presses"], got["cut"], got["missed"]) == (41, 21, 20)
@@ -348,3 +348,93 @@ def test_the_38_generated_recordings_press_by_press():
                 right += 1
                 assert cut.presses["cut"] >= truth.n_cycles - 2
     assert (right, flagged, refused) == (32, 0, 6)
+
+
+# ---------------------------------------------------------------------------------------------- issue 77 item 7
+def _rig_file(seed: int, *, absent=(), bumps=(), period: int = 400, n_presses: int = 41):
+    """A press-and-slide file (100 Hz, 9 channels) of a rig pressing every ``period`` samples: the presses in
+    ``absent`` are not in the file (rest there), and the cycles in ``bumps`` hold a bump at 40 % of a press's level,
+    0.72 periods after its onset (a seam brushing the sensor at rest: no press)."""
+    rng = np.random.default_rng(seed)
+    x = 500 + rng.normal(0, 1.5, (300 + n_presses * period + 200, 9))
+    length, ramp, bump = int(0.55 * period), 15, np.hanning(int(0.15 * period))
+    env = np.ones(length)
+    env[:ramp], env[-ramp:] = np.linspace(0, 1, ramp), np.linspace(1, 0, ramp)
+    vib = 1 + 0.1 * np.sin(2 * np.pi * 12 * np.arange(length) / 100)
+    for i in range(n_presses):
+        o = 300 + i * period
+        if i not in absent:
+            x[o:o + length] += (120 * env * vib)[:, None]
+        if i in bumps:
+            b = o + int(0.72 * period)
+            x[b:b + bump.size] += (48 * bump)[:, None]
+    return np.rint(x)
+
+
+#: 20 of the rig's 41 presses not in the file; 12 cycles of a clean file with a bump
+ABSENT = (1, 3, 4, 7, 9, 10, 13, 15, 17, 18, 21, 23, 25, 26, 29, 31, 33, 34, 36, 38)
+BUMPS = (2, 5, 8, 11, 14, 17, 20, 23, 26, 29, 32, 35)
+
+
+def test_presses_are_counted_against_the_rigs_period_when_it_is_known(tmp_path):
+    """Issue 77 item 7: a file lacking 20 of the rig's 41 presses was counted against rigctl's own press finder (20
+    presses found, the 20 missing never counted), and a clean file whose finder took 12 bumps for presses was
+    flagged. Given the rig's period (--press-period-s, or the file's own press_period_s), the presses are the rig's:
+    41, 20 of them not in the file; and the clean file's 41 of 41. Without it, the count says it is the finder's."""
+    np.save(tmp_path / "felt__R0.npy", _rig_file(1, absent=ABSENT))
+    clean = _rig_file(2, bumps=BUMPS)
+    np.save(tmp_path / "silk__R1.npy", clean)
+    np.savez(tmp_path / "cork__R2.npz", taxels=clean, press_period_s=4.0)  # the period in the file's metadata
+    common = ["--rate", 100, "--label-pattern", PATTERN, "--segment", "cycles"]
+
+    def rows(r):
+        return {line.split()[0]: line for line in r.stdout.splitlines() if "__R" in line.split()[0]}
+
+    r = run_import(tmp_path / "felt__R0.npy", tmp_path / "silk__R1.npy", *common, "--out", tmp_path / "a.h5")
+    assert r.exit_code == 0, r.output
+    warned = {line.split()[1].rstrip(":"): line for line in r.stderr.splitlines() if "press by press" in line}
+    assert "of 20 presses cut" in warned["felt__R0.npy"], r.stderr
+    assert "; counted against rigctl's press finder: give the rig's press period" in warned["felt__R0.npy"]
+    assert "silk__R1.npy" in warned and "counted against rigctl's press finder" in warned["silk__R1.npy"]
+    assert r.stdout.splitlines()[-2].startswith("presses cut: counted against rigctl's press finder; give the rig's")
+
+    r = run_import(tmp_path / "felt__R0.npy", tmp_path / "silk__R1.npy", tmp_path / "cork__R2.npz", *common,
+                   "--press-period-s", 4, "--out", tmp_path / "b.h5")
+    assert r.exit_code == 0, r.output
+    got = rows(r)
+    assert got["felt__R0.npy"].endswith("/41 FLAGGED") and got["silk__R1.npy"].endswith(" 41/41"), r.stdout
+    assert got["cork__R2.npz"].endswith(" 41/41")
+    (line,) = [x for x in r.stderr.splitlines() if "press by press" in x]
+    assert ("felt__R0.npy: 0 of 41 presses cut as trials press by press (41 missed: 20 not in the file (no press "
+            "found at its time)") in line, line
+    assert "the period found, 8.00 s, is not the rig's; counted against the rig's period 4.00 s (--press-period-s))" \
+        in line
+    assert "presses cut: counted against the rig's period 4.00 s (--press-period-s)" in r.stdout
+    with open_session(tmp_path / "b.h5") as s:
+        segs = {Path(x["file"]).name: x for x in json.loads(s.attrs["import_steps"])["segments"]}
+    assert segs["felt__R0.npy"]["presses"]["absent"] == 20 and segs["silk__R1.npy"]["presses"]["cut"] == 41
+
+    r = run_import(tmp_path / "cork__R2.npz", *common, "--out", tmp_path / "c.h5")  # the file's own period
+    assert r.exit_code == 0 and rows(r)["cork__R2.npz"].endswith(" 41/41"), r.output
+    assert "presses cut: counted against the rig's period 4.00 s (cork__R2.npz's press_period_s)" in r.stdout
+
+
+def test_a_declared_press_period_is_checked():
+    """A period that is not a number > 0, or one given to an import that does not cut cycles at their onsets, is
+    refused in one line; a file's own period (the mapping's per-file one, else the file's) goes before the
+    import's."""
+    from rigctl.storage.importers import ImportOptions, _Import
+    from rigctl.storage.recording_files import RecordingImportError
+
+    for bad, spec in ((0, "cycles"), ("soon", "cycles"), (4.0, "threshold")):
+        with pytest.raises(RecordingImportError, match="--press-period-s"):
+            ImportOptions.resolve({"press_period_s": bad}, segment_spec=spec)
+    opts = ImportOptions.resolve({"press_period_s": 4.0, "files": {"felt__R0.npy": {"press_period_s": 5.5}}},
+                                 segment_spec="cycles")
+    run = _Import(opts)
+    assert run.rig_period(Path("felt__R0.npy"), {}) == (5.5, 'the mapping\'s [files."felt__R0.npy"]')
+    assert run.rig_period(Path("silk__R1.npz"), {"press_period_s": 6.0}) == (6.0, "silk__R1.npz's press_period_s")
+    assert run.rig_period(Path("cork__R2.npy"), {}) == (4.0, "--press-period-s")
+    assert _Import(ImportOptions.resolve({}, segment_spec="cycles")).rig_period(Path("x.npz"), {})[0] is None
+    with pytest.raises(RecordingImportError, match="x.npz: press_period_s -1"):
+        run.rig_period(Path("x.npz"), {"press_period_s": -1.0})
