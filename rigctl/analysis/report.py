@@ -262,7 +262,10 @@ def size_note(res: TaskResults) -> str | None:
     words = {"per_texture": "trials per texture in the cross-validated rows",
              "train_per_cell": "training trials per texture and trained cell in the extrapolation rows",
              "repeats": "repetitions"}
-    have = ", ".join(f"{here[k]} {words[k]} (paper: {PAPER_SIZE[k]})" for k in PAPER_SIZE if here[k] is not None)
+    drawn = list((cv.get("drawn_per_texture") or {}).values())
+    shown = {**here, "per_texture": f"{min(drawn)}-{max(drawn)} (each texture weighted equally)"
+             if drawn and min(drawn) < max(drawn) else here["per_texture"]}
+    have = ", ".join(f"{shown[k]} {words[k]} (paper: {PAPER_SIZE[k]})" for k in PAPER_SIZE if here[k] is not None)
     return (f"size: {have}. At this size the accuracies are noisy and the PCA/LDA is fitted on few trials, so the "
             "paper's values and ordering are not expected to reproduce: a first try of every step, not a test of the "
             "paper's claims (those need its size: docs/guides/reproducing-the-paper.md)")

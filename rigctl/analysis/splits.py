@@ -32,6 +32,7 @@ from rigctl.analysis.tasks import (
     EXTRAPOLATION_CELLS,
     _extrapolation_draw,
     _extrapolation_plan,
+    cv_draw_counts,
     cv_split,
     realtime_draw,
     realtime_rng,
@@ -110,13 +111,15 @@ def paper_splits(texture: Sequence[str] | np.ndarray, speed_mm_s: Sequence[float
     tasks: dict[str, object] = {}
     counts: dict[str, object] = {}
     notes: list[str] = []
-    _, per = np.unique(tex, return_counts=True)
-    n_draw = int(min(per_texture, per.min())) if per.size else 0
-    if n_draw >= k:
-        idx, folds = cv_split(tex, n_draw, k, seed=seed, repeat=0)
+    names, per = np.unique(tex, return_counts=True)
+    drawn = cv_draw_counts(per, per_texture)
+    n_draw = int(drawn.min()) if per.size else 0
+    if n_draw >= k:  # as run_cv draws: every trial up to per_texture (unequal counts: weighted there, said here)
+        idx, folds = cv_split(tex, n_draw if drawn.max() == n_draw else drawn, k, seed=seed, repeat=0)
         tasks["cv"] = {"folds": [{"train": _ids(ids, idx[tr]), "test": _ids(ids, idx[te])} for tr, te in folds],
                        "k": k}
-        counts["cv"] = {"per_texture": n_draw, "k": k}
+        counts["cv"] = {"per_texture": n_draw, "k": k, "weighting": "none" if drawn.max() == n_draw else "balanced",
+                        "drawn_per_texture": {str(t): int(d) for t, d in zip(names, drawn, strict=True)}}
     else:
         notes.append(f"cv: the smallest texture has {int(per.min()) if per.size else 0} trials, fewer than k={k}")
     if has_profiles(profile):
@@ -130,7 +133,8 @@ def paper_splits(texture: Sequence[str] | np.ndarray, speed_mm_s: Sequence[float
         notes.append(f"extrapolation: {exc}")
     else:
         train_idx, test_idx, test_cat = _extrapolation_draw(cells, trained_cells, cat_of, a_tr, a_te, u_te,
-                                                            np.random.default_rng([seed, 10_000]))
+                                                            np.random.default_rng([seed, 10_000]),
+                                                            info["held_out_cells"])
         train = _ids(ids, train_idx)
         for cat in EXTRAPOLATION_CELLS.values():
             m = test_cat == cat
@@ -140,7 +144,8 @@ def paper_splits(texture: Sequence[str] | np.ndarray, speed_mm_s: Sequence[float
                 notes.append(f"{cat}: no test trials in these labels")
         counts["extrapolation"] = {"train_per_cell": a_tr, "test_per_trained_cell": a_te,
                                    "test_per_untrained_cell": u_te, "trained_speeds_mm_s": info["trained_speeds"],
-                                   "trained_forces_g": info["trained_forces"]}
+                                   "trained_forces_g": info["trained_forces"],
+                                   "held_out_cells_per_texture": info["held_out_cells"]}
     return {"seed": int(seed), "tasks": tasks, "counts": counts, "notes": notes}
 
 

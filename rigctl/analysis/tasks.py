@@ -14,7 +14,9 @@ Methods, "Tactile Texture Dataset - Statistical Analysis":
   Original vs each scaled variant with Welch + Cohen's d and the two-proportion z-test + Cohen's h.
 
 When a data set has fewer trials than the paper, the per-texture / per-cell counts are scaled down automatically
-(a :class:`UserWarning` is emitted and the counts are stored in :attr:`TaskResults.counts`).
+(a :class:`UserWarning` is emitted and the counts are stored in :attr:`TaskResults.counts`). Textures of unequal
+counts are not cut to the smallest: every trial up to the per-texture draw is used, each texture weighted equally
+(:func:`run_cv`), and the warning says so with the numbers.
 
 Methods, "Real-time Texture Classification - Statistical Analysis" (Fig. 4): :func:`run_realtime` on ramp-profile
 trials (velocity profiles slow / medium / fast / slow-to-fast / fast-to-slow): k = 4 cross-validation offline;
@@ -32,6 +34,16 @@ from typing import Any
 
 import numpy as np
 
+from rigctl.analysis.cells import (  # noqa: F401  (the cells' helpers: splits.py and tests use them from here)
+    EXTRAPOLATION_CELLS,
+    _cell_text,
+    _cells,
+    _extrapolation_draw,
+    _extrapolation_plan,
+    _isin,
+    _some,
+    extrapolation_split,
+)
 from rigctl.analysis.data import FeatureSet, default_variants
 from rigctl.analysis.nested_lda import NestedLDA, fit_pca
 from rigctl.analysis.parallel import connected, map_repeats, map_threads, one_blas_thread
@@ -48,6 +60,7 @@ __all__ = [
     "EXTRAPOLATION_CELLS",
     "Curve",
     "TaskResults",
+    "cv_draw_counts",
     "cv_split",
     "extrapolation_split",
     "run_cv",
@@ -55,15 +68,6 @@ __all__ = [
     "run_realtime",
     "run_table1",
 ]
-
-#: extrapolation test cells: (speed trained?, force trained?) -> task key
-EXTRAPOLATION_CELLS = {
-    (False, False): "untrained_speed_force",
-    (True, False): "untrained_force",
-    (False, True): "untrained_speed",
-    (True, True): "trained",
-}
-
 
 def _warn(res: TaskResults, msg: str):
     res.warnings.append(msg)
@@ -90,11 +94,22 @@ def _label_codes(labels, classes):
     return np.searchsorted(universe, labels), np.searchsorted(universe, classes)
 
 
-def _accumulate(pred, truth, classes, confusion_pcs):
-    """pred (n_pcs, n_test) -> correct counts per PC and the confusion matrix at confusion_pcs."""
-    correct = (pred == truth[None, :]).sum(axis=1)
+def _accumulate(pred, truth, classes, confusion_pcs, weights=None):
+    """pred (n_pcs, n_test) -> correct counts per PC (``weights`` (n_test,): weighted) and the confusion matrix at
+    confusion_pcs (trials counted)."""
+    hit = pred == truth[None, :]
+    correct = hit.sum(axis=1) if weights is None else hit @ np.asarray(weights, dtype=np.float64)
     j = min(confusion_pcs, pred.shape[0]) - 1
     return correct, _confusion(truth, pred[j], classes)
+
+
+def _weighted_priors(y, w) -> np.ndarray:
+    """The classes' (``np.unique(y)``) shares of the weights ``w``: with each texture's trials weighted by the inverse
+    of its count, every texture has an equal share (a group the share of its textures)."""
+    classes, inverse = np.unique(y, return_inverse=True)
+    mass = np.bincount(inverse, weights=np.asarray(w, dtype=np.float64), minlength=classes.size)
+    out: np.ndarray = mass / mass.sum()
+    return out
 
 
 def _confusion(truth, pred, classes):
@@ -135,8 +150,12 @@ def run_cv(
     tasks : sequence of {"textures", "groups"}
         Label sets to classify; they share draws, folds and PCA fits.
     params : :class:`rigctl.analysis.params.CVParams`
-        ``per_texture`` trials drawn per texture (the paper: 500 of 1500; reduced with a warning to the smallest
-        texture's count), ``k`` folds (the paper: 4), ``groups`` (None: random folds; ``recording``, ``session``,
+        ``per_texture`` trials drawn per texture (the paper: 500 of 1500): every trial of a texture holding fewer
+        (:func:`cv_draw_counts`); when the textures then draw unequal counts, each texture is weighted equally (LDA
+        priors their equal shares, the accuracy the mean of the textures' accuracies) and a warning says so with
+        the numbers (``counts["cv"]``: ``weighting``, ``drawn_per_texture``); equal counts are the paper's
+        balanced draw, unchanged (fewer than ``per_texture`` each: a warning). ``k`` folds (the paper: 4),
+        ``groups`` (None: random folds; ``recording``, ``session``,
         ``block:N``: folds that never put one group on both sides, :mod:`rigctl.analysis.grouping`).
     reps : :class:`rigctl.analysis.params.Repetitions`
         ``n_pcs`` (the paper: 50), ``repeats`` (each a new random draw and new folds; the paper: 20), ``seed``,
@@ -179,16 +198,14 @@ def run_cv(
     res = TaskResults()
     if groups is not None and note:
         _warn(res, note)
-    textures, counts = np.unique(fs.texture, return_counts=True)
-    n_draw = int(min(per_texture, counts.min()))
-    if n_draw < k:
-        why = (f"per_texture is {per_texture}" if per_texture < k else f"the smallest texture has {counts.min()}")
-        raise ValueError(f"need at least {k} trials per texture for {k}-fold CV ({why})")
-    if n_draw < per_texture:
-        _warn(res, _short_draw_warning(textures, counts, per_texture, n_draw))
-    res.counts["cv"] = {"per_texture": n_draw, "n_textures": len(textures), "folds": k, "repeats": repeats,
-                        "trials_per_repeat": n_draw * len(textures), "groups": params.groups,
-                        "n_groups": None if groups is None else int(np.unique(groups).size)}
+    textures, drawn, weights = _cv_draw(fs, res, per_texture, k)
+    res.counts["cv"] = {"per_texture": int(drawn.min()), "n_textures": len(textures), "folds": k, "repeats": repeats,
+                        "trials_per_repeat": int(drawn.sum()), "groups": params.groups,
+                        "n_groups": None if groups is None else int(np.unique(groups).size),
+                        "weighting": "none" if weights is None else "balanced",
+                        "drawn_per_texture": {str(t): int(d) for t, d in zip(textures, drawn, strict=True)},
+                        "trials_available": int(fs.n_trials)}
+    n_draw = int(drawn.min())
     confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
     classes = {t: (fs.texture_classes if t == "textures" else fs.group_classes) for t in tasks}
     padding = _paddings(fs, vs, None if scheduler is not None else n_jobs)
@@ -196,13 +213,13 @@ def run_cv(
     shared = {"features": {v: fs.features[v] for v in vs}, "padding": padding,
               "texture": _label_codes(fs.texture, textures)[0],  # (the same draws and folds: the same order)
               "labels": {t: c for t, (c, _) in codes.items()}, "classes": {t: c for t, (_, c) in codes.items()},
-              "n_draw": n_draw, "k": k, "n_pcs": n_pcs, "seed": seed, "confusion_pcs": confusion_pcs,
-              "groups": groups}
+              "n_draw": n_draw if weights is None else drawn, "k": k, "n_pcs": n_pcs, "seed": seed,
+              "confusion_pcs": confusion_pcs, "groups": groups, "weights": weights}
     bar = Stage(progress, "textures/groups", repeats * k * len(vs), unit="fit")
     per_repeat = map_repeats(_cv_repeat, repeats, shared, n_jobs=n_jobs, scheduler=scheduler, workers=workers,
                        on_done=lambda: bar.advance(k * len(vs)))
     n_used = min(len(c) for rep in per_repeat for folds, _ in rep.values() for c in folds)
-    n_drawn = n_draw * len(textures)
+    n_drawn = int(drawn.sum())  # (weighted: each repetition's weights sum to it, so the accuracy is balanced)
     for t in tasks:
         for v in vs:
             a = np.vstack([np.sum([c[:n_used] for c in rep[(t, v)][0]], axis=0) / n_drawn for rep in per_repeat])
@@ -211,6 +228,47 @@ def run_cv(
                           min(confusion_pcs, n_used)))
     res.settings.update({"n_pcs": n_used, "repeats": repeats, "seed": seed})
     return res
+
+
+def _cv_draw(fs: FeatureSet, res: TaskResults, per_texture: int, k: int
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(textures, drawn per texture, per-trial weights or None)`` of :func:`run_cv`'s draw, its warning in ``res``:
+    textures of unequal draws weight each texture equally (weights summing to the trials drawn); equal draws are the
+    paper's (no weights). ValueError when a texture has fewer than ``k`` trials."""
+    textures, counts = np.unique(fs.texture, return_counts=True)
+    drawn = cv_draw_counts(counts, per_texture)
+    n_draw = int(drawn.min())
+    if n_draw < k:
+        why = (f"per_texture is {per_texture}" if per_texture < k else f"the smallest texture has {counts.min()}")
+        raise ValueError(f"need at least {k} trials per texture for {k}-fold CV ({why})")
+    if drawn.max() > n_draw:  # textures of unequal counts: every trial, each texture weighted equally (said)
+        _warn(res, _weighted_draw_warning(textures, counts, per_texture, drawn))
+        return textures, drawn, (drawn.sum() / (len(textures) * drawn))[_label_codes(fs.texture, textures)[0]]
+    if n_draw < per_texture:
+        _warn(res, _short_draw_warning(textures, counts, per_texture, n_draw))
+    return textures, drawn, None
+
+
+def cv_draw_counts(counts, per_texture: int) -> np.ndarray:
+    """Trials drawn per texture for the textures / groups tasks: every trial of each texture, up to ``per_texture``
+    (the paper: 500 of its 1500); ``counts`` (n_textures,) the trials each texture holds. Equal counts are the
+    paper's balanced draw; unequal ones are weighted (:func:`run_cv`: each texture counts equally)."""
+    out: np.ndarray = np.minimum(np.asarray(counts, dtype=np.int64), int(per_texture))
+    return out
+
+
+def _weighted_draw_warning(textures: np.ndarray, counts: np.ndarray, per_texture: int, drawn: np.ndarray) -> str:
+    """What an unequal draw does (issue 77 item 7: the smallest texture's count drawn from every texture used 120 of
+    778 trials): every trial up to ``per_texture``, each texture weighted equally, and what the balanced draw would
+    have used."""
+    smallest = [f"{t} ({c})" for t, c in zip(textures, counts, strict=True) if c == counts.min()]
+    return (f"textures/groups: the textures hold {counts.min()}-{counts.max()} trials (fewest: {_some(smallest)}); "
+            f"using every trial up to --per-texture {per_texture} ({int(drawn.sum())} of {int(counts.sum())} trials "
+            f"per repetition, {int(drawn.min())}-{int(drawn.max())} per texture), each texture weighted equally: the "
+            "LDA's class priors are the textures' equal shares and the accuracy is the mean of the textures' "
+            "accuracies (balanced accuracy); the confusion matrices count trials. A draw of the smallest count from "
+            f"every texture would use {int(drawn.min()) * len(textures)}; "
+            f"check the short texture's trials, or leave it out with --textures")
 
 
 def _short_draw_warning(textures: np.ndarray, counts: np.ndarray, per_texture: int, n_draw: int) -> str:
@@ -270,8 +328,10 @@ def _paddings(fs: FeatureSet, vs, n_jobs=None) -> dict:
 
 
 def _cv_repeat(r, *, features, texture, labels, classes, n_draw, k, n_pcs, seed, confusion_pcs, groups=None,
-               padding=None):
-    """Repetition ``r`` of :func:`run_cv`: ``{(task, variant): ([correct per PC count, per fold], confusion)}``."""
+               padding=None, weights=None):
+    """Repetition ``r`` of :func:`run_cv`: ``{(task, variant): ([correct per PC count, per fold], confusion)}``;
+    with ``weights`` (per trial, :func:`run_cv`'s unequal draw) the correct counts are weighted and the LDA's priors
+    are the classes' shares of the training weights."""
     idx, folds = cv_split(texture, n_draw, k, seed=seed, repeat=r, groups=groups)
     correct, cms = {}, {}
     for v, x in features.items():
@@ -281,8 +341,13 @@ def _cv_repeat(r, *, features, texture, labels, classes, n_draw, k, n_pcs, seed,
         for (tr, te), (z_tr, z_te) in zip(folds, scores):
             for t, y_all in labels.items():
                 y = y_all[idx]
-                pred = NestedLDA().fit(z_tr, y[tr]).predict_all(z_te)
-                c, cm = _accumulate(pred, y[te], classes[t], confusion_pcs)
+                if weights is None:
+                    pred = NestedLDA().fit(z_tr, y[tr]).predict_all(z_te)
+                    c, cm = _accumulate(pred, y[te], classes[t], confusion_pcs)
+                else:
+                    w = weights[idx]
+                    pred = NestedLDA(priors=_weighted_priors(y[tr], w[tr])).fit(z_tr, y[tr]).predict_all(z_te)
+                    c, cm = _accumulate(pred, y[te], classes[t], confusion_pcs, w[te])
                 correct.setdefault((t, v), []).append(c)
                 cms[(t, v)] = cms.get((t, v), 0) + cm
     return {key: (correct[key], cms[key]) for key in correct}
@@ -294,8 +359,9 @@ def cv_split(texture, per_texture, k, *, seed=0, repeat=0, groups=None):
     Parameters
     ----------
     texture : ndarray (n_trials,) str
-    per_texture : int
-        Trials drawn at random (without replacement) per texture (the paper: 500).
+    per_texture : int or ndarray (n_textures,) int
+        Trials drawn at random (without replacement) per texture (the paper: 500), or per texture in
+        ``np.unique(texture)``'s order (:func:`cv_draw_counts`).
     k : int
         Folds, stratified by texture (the paper: 4).
     seed, repeat : int
@@ -307,13 +373,15 @@ def cv_split(texture, per_texture, k, *, seed=0, repeat=0, groups=None):
 
     Returns
     -------
-    idx : ndarray (n_textures * per_texture,) int
+    idx : ndarray (the per-texture draws' sum,) int
         Drawn trial indices.
     folds : list of (train, test) index arrays into ``idx``.
     """
     rng = np.random.default_rng([seed, repeat])
-    idx = np.concatenate([rng.choice(np.flatnonzero(texture == t), per_texture, replace=False)
-                          for t in np.unique(texture)])
+    uniq = np.unique(texture)
+    each = np.broadcast_to(np.asarray(per_texture, dtype=np.int64), uniq.shape)
+    idx = np.concatenate([rng.choice(np.flatnonzero(texture == t), int(n), replace=False)
+                          for t, n in zip(uniq, each, strict=True)])
     state = int(rng.integers(2**31))
     if groups is not None:
         from sklearn.model_selection import StratifiedGroupKFold
@@ -328,10 +396,6 @@ def _stratified_folds(labels, k: int, state: int) -> list[tuple[np.ndarray, np.n
     from sklearn.model_selection import StratifiedKFold
 
     return list(StratifiedKFold(k, shuffle=True, random_state=state).split(labels, labels))
-
-
-def _cells(fs: FeatureSet):
-    return np.round(np.abs(fs.speed_mm_s), 6), np.round(fs.force_g, 6)
 
 
 def run_extrapolation(
@@ -380,7 +444,14 @@ def run_extrapolation(
     res = TaskResults()
     cells, trained_cells, cat_of, (a_tr, a_te, u_te), info = _extrapolation_plan(
         fs, train_speeds, train_forces, test_speeds, test_forces, n_train, n_test)
-    if (a_tr, a_te, u_te) != (n_train, n_test, n_test):
+    hold = info["held_out_cells"]
+    if hold:
+        _warn(res, f"{prefix}extrapolation: a trained cell holds {info['min_trained']} trial(s) "
+              f"({_some(info['smallest_trained'])}), too few to split into train and test: whole cells held out "
+              f"instead: each repetition tests {hold} of each texture's {info['trained_cells_per_texture']} trained "
+              f"cells (drawn at random; the '{task_title(prefix + 'trained')}' row: trained speeds and forces, cells "
+              f"never trained on) and trains on the others; every untrained cell tests {u_te} trial(s)")
+    elif (a_tr, a_te, u_te) != (n_train, n_test, n_test):
         _warn(res, f"{prefix}extrapolation: smallest trained cell has {info['min_trained']} trials "
               f"({_some(info['smallest_trained'])}) and smallest untrained cell {info['min_untrained']} "
               f"({_some(info['smallest_untrained']) or 'none'}); using {a_tr} train + {a_te} test per texture and trained "
@@ -389,7 +460,8 @@ def run_extrapolation(
         "train_per_cell": a_tr, "test_per_trained_cell": a_te, "test_per_untrained_cell": u_te,
         "trained_speeds": info["trained_speeds"], "trained_forces": info["trained_forces"],
         "n_trained_cells": len(trained_cells), "n_untrained_cells": len(cells) - len(trained_cells),
-        "repeats": repeats,
+        "repeats": repeats, "split": "held-out cells" if hold else "trials within cells",
+        "held_out_cells_per_texture": hold,
     }
     confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
     classes = fs.texture_classes  # the texture set's order (stable codes)
@@ -398,9 +470,9 @@ def run_extrapolation(
     texture_codes, class_codes = _label_codes(fs.texture, classes)
     shared = {"features": {v: fs.features[v] for v in vs}, "padding": padding, "texture": texture_codes,
               "classes": class_codes, "cells": cells, "trained_cells": trained_cells, "cat_of": cat_of, "counts": (a_tr, a_te, u_te),
-              "cats": cats, "n_pcs": n_pcs, "seed": seed, "confusion_pcs": confusion_pcs,
-              "bases": _trained_bases(fs, vs, padding, cells, trained_cells, a_tr, repeats, n_pcs, seed,
-                                      n_jobs=None if scheduler is not None else n_jobs)}
+              "cats": cats, "n_pcs": n_pcs, "seed": seed, "confusion_pcs": confusion_pcs, "hold_cells": hold,
+              "bases": {} if hold else _trained_bases(fs, vs, padding, cells, trained_cells, a_tr, repeats, n_pcs,
+                                                      seed, n_jobs=None if scheduler is not None else n_jobs)}
     bar = Stage(progress, prefix + "extrapolation", repeats * len(vs), unit="fit")
     per_repeat = map_repeats(_extrapolation_repeat, repeats, shared, n_jobs=n_jobs, scheduler=scheduler,
                        workers=workers, on_done=lambda: bar.advance(len(vs)))
@@ -435,11 +507,11 @@ def _trained_bases(fs, vs, padding, cells, trained_cells, n_train, repeats, n_pc
 
 
 def _extrapolation_repeat(r, *, features, texture, classes, cells, trained_cells, cat_of, counts, cats, n_pcs, seed,
-                          confusion_pcs, padding=None, bases=None):
+                          confusion_pcs, padding=None, bases=None, hold_cells=0):
     """Repetition ``r`` of :func:`run_extrapolation`: ``{(cell, variant): (accuracy per PC count, confusion,
     test trials)}``."""
     train_idx, test_idx, test_cat = _extrapolation_draw(cells, trained_cells, cat_of, *counts,
-                                                        np.random.default_rng([seed, 10_000 + r]))
+                                                        np.random.default_rng([seed, 10_000 + r]), hold_cells)
     y_tr, y_te = texture[train_idx], texture[test_idx]
     rows = np.concatenate([train_idx, test_idx])
     split = [(np.arange(len(train_idx)), np.arange(len(train_idx), len(rows)))]
@@ -456,107 +528,6 @@ def _extrapolation_repeat(r, *, features, texture, classes, cells, trained_cells
             correct, cm = _accumulate(pred[:, m], y_te[m], classes, confusion_pcs)
             out[(c, v)] = (correct / m.sum(), cm, int(m.sum()))
     return out
-
-
-def _isin(values, wanted):
-    """``np.isin`` where a NaN label (no speed or no force recorded, e.g. imported recordings) matches a NaN."""
-    wanted = np.asarray(wanted, float)
-    return np.isin(values, wanted) | (np.isnan(values) & bool(np.isnan(wanted).any()))
-
-
-def _some(names, k: int = 3) -> str:
-    """The first ``k`` names, and how many more."""
-    names = list(names)
-    return ", ".join(names[:k]) + (f" (+{len(names) - k} more)" if len(names) > k else "")
-
-
-def _fmt_values(values) -> str:
-    return ", ".join("none" if np.isnan(v) else f"{float(v):g}" for v in np.asarray(values, float)) or "none"
-
-
-def _cell_text(cell: str) -> str:
-    """``"Board10mm|100.0|120.0"`` -> ``"Board10mm at 100 mm/s, 120 g"``."""
-    texture, speed, force = cell.rsplit("|", 2)
-    return f"{texture} at {_fmt_values([float(speed)])} mm/s, {_fmt_values([float(force)])} g"
-
-
-def _extrapolation_plan(fs, train_speeds, train_forces, test_speeds, test_forces, n_train, n_test):
-    """Cells (texture|speed|force -> trial indices), trained cells, cell category, and the counts to draw."""
-    spd, frc = _cells(fs)
-    tr_s = np.unique(spd) if train_speeds is None else np.round(np.abs(np.asarray(train_speeds, float)), 6)
-    tr_f = np.unique(frc) if train_forces is None else np.round(np.asarray(train_forces, float), 6)
-    s_in = _isin(spd, tr_s)
-    f_in = _isin(frc, tr_f)
-    keep = np.ones(fs.n_trials, bool)
-    if test_speeds is not None:
-        keep &= _isin(spd, np.round(np.abs(np.asarray(test_speeds, float)), 6)) | s_in
-    if test_forces is not None:
-        keep &= _isin(frc, np.round(np.asarray(test_forces, float), 6)) | f_in
-    trained = s_in & f_in
-    if not trained.any():
-        raise ValueError(f"no trials at the trained speeds {_fmt_values(tr_s)} mm/s and forces "
-                         f"{_fmt_values(tr_f)} g (the file has speeds {_fmt_values(np.unique(spd))} mm/s, forces "
-                         f"{_fmt_values(np.unique(frc))} g)")
-    cell_key = np.char.add(np.char.add(fs.texture.astype(str), "|"),
-                           np.char.add(spd.astype(str), np.char.add("|", frc.astype(str))))
-    cells = {}
-    for i in np.flatnonzero(keep):
-        cells.setdefault(cell_key[i], []).append(i)
-    cells = {c: np.asarray(ix) for c, ix in cells.items()}
-    trained_cells = [c for c, ix in cells.items() if trained[ix[0]]]
-    test_cells = [c for c, ix in cells.items() if not trained[ix[0]]]
-    min_tr = min(len(cells[c]) for c in trained_cells)
-    a_tr, a_te = n_train, n_test
-    if min_tr < n_train + n_test:
-        a_te = max(1, int(round(min_tr * n_test / (n_train + n_test))))
-        a_tr = min_tr - a_te
-        if a_tr < 1:
-            short = sorted(c for c in trained_cells if len(cells[c]) == min_tr)
-            raise ValueError(f"the trained cell {_cell_text(short[0])} has only {min_tr} trials"
-                             f"{f' (and {len(short) - 1} more cells)' if len(short) > 1 else ''}: cannot split into "
-                             "train and test (leave its texture out with --textures, or train other speeds/forces)")
-    min_te = min((len(cells[c]) for c in test_cells), default=a_te)
-    u_te = min(a_te, min_te)
-    cat_of = {cell: EXTRAPOLATION_CELLS[(bool(s_in[ix[0]]), bool(f_in[ix[0]]))] for cell, ix in cells.items()}
-    smallest_tr = sorted(_cell_text(c) for c in trained_cells if len(cells[c]) == min_tr)
-    smallest_te = sorted(_cell_text(c) for c in test_cells if len(cells[c]) == min_te)
-    info = {"min_trained": min_tr, "min_untrained": min_te, "trained_speeds": [float(x) for x in tr_s],
-            "smallest_trained": smallest_tr, "smallest_untrained": smallest_te,
-            "trained_forces": [float(x) for x in tr_f]}
-    return cells, trained_cells, cat_of, (a_tr, a_te, u_te), info
-
-
-def _extrapolation_draw(cells, trained_cells, cat_of, n_train, n_test, n_untrained, rng):
-    """Per cell: ``n_train`` + ``n_test`` from trained cells, ``n_untrained`` test trials from the others."""
-    trained_cells = set(trained_cells)
-    train_idx, test_idx, test_cat = [], [], []
-    for cell in sorted(cells):
-        perm = rng.permutation(cells[cell])
-        if cell in trained_cells:
-            train_idx.append(perm[:n_train])
-            chosen = perm[n_train : n_train + n_test]
-        else:
-            chosen = perm[:n_untrained]
-        test_idx.append(chosen)
-        test_cat += [cat_of[cell]] * len(chosen)
-    return np.concatenate(train_idx), np.concatenate(test_idx), np.asarray(test_cat)
-
-
-def extrapolation_split(fs: FeatureSet, *, train_speeds=(40, 60, 80), train_forces=(250, 500), n_train=75,
-                        n_test=25, seed=0, repeat=0):
-    """One repetition's split of the extrapolation task, as :func:`run_extrapolation` draws it.
-
-    Returns
-    -------
-    train_idx : ndarray int
-    test_idx : ndarray int
-    test_cell : ndarray str
-        Per test trial: ``untrained_speed_force``, ``untrained_force``, ``untrained_speed`` or ``trained``.
-    """
-    cells, trained_cells, cat_of, (a_tr, a_te, u_te), _ = _extrapolation_plan(
-        fs, train_speeds, train_forces, None, None, n_train, n_test)
-    return _extrapolation_draw(cells, trained_cells, cat_of, a_tr, a_te, u_te,
-                               np.random.default_rng([seed, 10_000 + repeat]))
 
 
 def run_table1(fs: FeatureSet, reps: Repetitions | None = None, *, execution: Execution | None = None,

@@ -132,16 +132,22 @@ def test_analyze_subsets_counts_and_skips(tmp_path, write_schema1):
     assert r.exit_code == 0, r.output
     per_cell = json.loads(r.stdout)["counts"]["extrapolation"]
     assert (per_cell["train_per_cell"], per_cell["test_per_trained_cell"]) == (2, 1)  # 4 per cell: 2 + 1 asked
-    # one trial per condition: a trained cell of 1 trial cannot be split; the message names it
+    # one trial per condition: a trained cell of 1 trial cannot be split, so whole trained cells are held out (issue
+    # 77 item 7; it was refused), and the output says which split it used
     one = synthetic_features(1, n_textures=4, n_channels=4, noise=0.5, seed=3)
     path = write_schema1(one, tmp_path / "one.h5", 4)
     r = analyze("--task", "extrapolation")
-    assert r.exit_code == 1 and "the trained cell " in r.output and " mm/s, " in r.output and "has only 1 trials" in r.output
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    assert out["counts"]["extrapolation"]["split"] == "held-out cells", out["counts"]
+    assert any(w.startswith("extrapolation: a trained cell holds 1 trial(s)") and "whole cells held out" in w
+               for w in out["warnings"]), out["warnings"]
     r = analyze("--task", "all")
     assert r.exit_code == 0, r.output
     out = json.loads(r.stdout)
-    assert "textures" in out["tasks"] and any(w.startswith("extrapolation skipped: the trained cell")
-                                               for w in out["warnings"])
+    assert "textures" in out["tasks"] and "trained" in out["tasks"]
+    r = analyze("--task", "extrapolation", "--train-speeds", "40", "--train-forces", "250")  # one trained cell each
+    assert r.exit_code == 1 and "the trained cell " in r.output and " mm/s, " in r.output and "has only 1 trials" in r.output
 
 
 def test_a_block_grouping_of_one_file_per_trial_says_it_degenerates():

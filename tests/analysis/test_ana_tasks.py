@@ -85,11 +85,20 @@ def test_cv_tasks_scale_down_and_shapes(small):
                       r"per texture.*the session holds 90 trials for most textures: set --per-texture 90") as got:
         res = run_cv(small, ("textures", "groups"), n_pcs=12, repeats=2, per_texture=500)
     assert not any("--textures" in str(w.message) for w in got)
-    # one texture short of the others: it sets the size, and leaving it out is the advice
+    # one texture short of the others (issue 77 item 7): every trial is used, each texture weighted equally, said
+    # with the numbers; the smallest count drawn from every texture (the former rule) would have used 320 of 670
     keep = np.flatnonzero((small.texture != "A") | (np.cumsum(small.texture == "A") <= 40))
-    with pytest.warns(UserWarning, match=r"set by A \(40 trials; median texture 90\): check its trials or leave it "
-                      r"out with --textures"):
-        run_cv(small.subset(keep), ("textures",), n_pcs=6, repeats=1, per_texture=90)
+    with pytest.warns(UserWarning, match=r"the textures hold 40-90 trials \(fewest: A \(40\)\); using every trial up "
+                      r"to --per-texture 90 \(670 of 670 trials per repetition, 40-90 per texture\), each texture "
+                      r"weighted equally.*balanced accuracy.*would use 320; .*leave it out with --textures"):
+        short = run_cv(small.subset(keep), ("textures", "groups"), n_pcs=6, repeats=2, per_texture=90)
+    cv = short.counts["cv"]
+    assert cv["weighting"] == "balanced" and cv["trials_per_repeat"] == 670 and cv["drawn_per_texture"]["A"] == 40
+    c = short.curves["textures"]["speed_force_scaled"]
+    assert c.n_tested == 670 and c.confusion.sum() == 2 * 670  # every trial tested once a repetition
+    recall = np.diag(c.confusion) / c.confusion.sum(axis=1)  # the accuracy is the mean of the textures' accuracies
+    assert c.acc[:, -1].mean() == pytest.approx(recall.mean(), abs=1e-12)
+    assert np.trace(c.confusion) / c.confusion.sum() != pytest.approx(recall.mean(), abs=1e-6)  # not the pooled one
     assert res.counts["cv"]["per_texture"] == 90
     for task, n_cls in (("textures", 8), ("groups", 3)):  # A smooth, B-F circular, G-H rectangular
         c = res.curves[task]["speed_force_scaled"]
@@ -163,3 +172,49 @@ def test_the_repetitions_count_on_label_codes_what_they_count_on_the_labels(smal
         np.testing.assert_array_equal(np.array(correct), np.array(by_code[key][0]))
         np.testing.assert_array_equal(confusion, by_code[key][1])
         assert confusion.sum() == 20 * len(tex_classes) * 1  # every drawn trial tested once
+
+
+def test_weighted_priors_give_each_texture_an_equal_share():
+    """The unequal draw's LDA priors (issue 77 item 7): trials weighted by the inverse of their texture's count give
+    every texture an equal prior, and a group the share of its textures."""
+    from rigctl.analysis.tasks import _weighted_priors, cv_draw_counts
+
+    drawn = cv_draw_counts([40, 90, 700], 500)
+    assert drawn.tolist() == [40, 90, 500]
+    texture = np.repeat(np.array(["A", "B", "C"]), drawn)
+    w = (drawn.sum() / (3 * drawn))[np.searchsorted(["A", "B", "C"], texture)]
+    assert _weighted_priors(texture, w) == pytest.approx([1 / 3] * 3)
+    group = np.where(texture == "C", "coarse", "fine")
+    assert _weighted_priors(group, w) == pytest.approx([1 / 3, 2 / 3])  # coarse (C), fine (A, B)
+
+
+def test_one_trial_per_cell_gets_a_speed_extrapolation_by_held_out_cells():
+    """Issue 77 item 7: a design of one trial per speed-force cell got no speed extrapolation (a cell of one trial
+    cannot be split into train and test). Whole trained cells are now held out: per repetition and texture, a quarter
+    of the trained cells (3 of 12) test and the others train; a held-out cell's trial is never trained on, the warning
+    and the counts say which split was used. A texture with one trained cell is still refused in one line."""
+    from rigctl.analysis.report import format_counts
+    from rigctl.analysis.tasks import _cells, extrapolation_split, run_extrapolation
+
+    fs = synthetic_features(1, n_textures=4, n_channels=4, speeds=(20.0, 40.0, 60.0, 80.0, 100.0),
+                            forces=(100.0, 200.0, 300.0, 400.0), seed=4, noise=0.6)
+    assert fs.n_trials == 80
+    with pytest.warns(UserWarning, match=r"speed_extrapolation: a trained cell holds 1 trial\(s\).*whole cells held "
+                      r"out instead: each repetition tests 3 of each texture's 12 trained cells"):
+        res = run_extrapolation(fs, train_speeds=(20, 40, 60), train_forces=None, prefix="speed_", n_pcs=6,
+                                repeats=2)
+    counts = res.counts["speed_extrapolation"]
+    assert counts["split"] == "held-out cells" and counts["held_out_cells_per_texture"] == 3
+    assert counts["tested_per_repeat"] == {"speed_untrained_speed": 32, "speed_trained": 12}
+    assert any("split held-out cells" in line for line in format_counts(res.counts))  # on the terminal
+    assert set(res.curves) == {"speed_untrained_speed", "speed_trained"}
+    spd, frc = _cells(fs)
+    key = np.char.add(np.char.add(fs.texture.astype(str), spd.astype(str)), frc.astype(str))
+    for repeat in range(3):
+        train, test, cat = extrapolation_split(fs, train_speeds=(20, 40, 60), train_forces=None, repeat=repeat)
+        held = test[cat == "trained"]
+        assert len(train) == 36 and len(held) == 12 and not set(key[held]) & set(key[train])
+        assert all((fs.texture[held] == t).sum() == 3 for t in np.unique(fs.texture))
+    with pytest.raises(ValueError, match="has one trained cell: cannot split into train and test, by trials or by "
+                       "whole cells"):  # one trained speed and force: one trained cell a texture
+        run_extrapolation(fs, train_speeds=(20,), train_forces=(100,), n_pcs=4, repeats=1)
