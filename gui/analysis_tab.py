@@ -520,8 +520,11 @@ class AnalysisTab(StagedWidget, QtWidgets.QWidget):
             self._set_trial_busy(None)
 
     def _draw_trial(self, job: Job) -> None:
-        if job.error:
+        if job.error:  # (an excluded trial: the validator's reason) the view shows no other trial in its place
             self.status.setText(f"<span style='color:{on_window(ERROR, self)}'>trial {job.tid}: {_html(job.error)}</span>")
+            self.shown_tid = None
+            for c in self.trial_curves:
+                c.setData([], [])
             return
         self.shown_tid = job.tid
         x, sa, ra, duration_s, note = job.result
@@ -1004,7 +1007,7 @@ def _source_readings(encoded_path: str, tid: int) -> tuple[np.ndarray | None, st
     try:
         session, _params = session_of(encoded_path)
         with open_session(session) as s:
-            return s.trial(int(tid)).taxels, ""
+            return s.usable_trial(int(tid)).taxels, ""  # the one validator: an excluded trial's readings not shown
     except FileNotFoundError:
         return None, "its session file is not found: open the session to see them"
     except Exception as exc:  # noqa: BLE001 - the spikes are still shown; the title says why there are no readings

@@ -51,13 +51,15 @@ def trial_spikes(session_path: str | os.PathLike[str], trial_id: int, *,
                  taxel_range: TaxelRange | None = None) -> TrialSpikes:
     """Read trial ``trial_id`` of a session file and encode it into SA and RA spikes, normalised with
     ``taxel_range`` (default: :func:`session_taxel_range`, which reads the whole session: pass it again when browsing
-    several trials). KeyError for a trial the session does not hold; SessionError / OSError from the file."""
+    several trials). KeyError for a trial the session does not hold; SessionError naming the reason for a trial the
+    trial validator excludes (:meth:`rigctl.storage.session.Session.usable_trial`); SessionError / OSError from the
+    file."""
     from rigctl.encoding.izhikevich import encode_trials
     from rigctl.storage.session import open_session
 
     rng = taxel_range if taxel_range is not None else session_taxel_range(session_path)
     with open_session(session_path) as s:
-        trial = s.trial(int(trial_id))
+        trial = s.usable_trial(int(trial_id))  # the one validator: an excluded trial is not shown
     x = trial.taxels
     fs_hz = float(trial.layout.sample_rate_hz)  # one model step per sample, at the session's rate
     trains = encode_trials(x[None], normalise=rng, fs=fs_hz)  # SA taxels first, then RA

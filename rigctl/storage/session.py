@@ -82,6 +82,18 @@ class Session(SessionReader):
         in plan order. A damaged trial is skipped with a warning naming it (also added to :attr:`problems`)."""
         return super().iter_trials(usable_trials(self).ids if ids is None else ids)
 
+    def usable_trial(self, trial_id: int) -> TrialData:
+        """Trial ``trial_id`` read as :meth:`trial` does, if the trial validator finds it usable (a viewer showing
+        one trial uses what every command uses). SessionError naming the reason for an excluded trial, KeyError for
+        one that is not a complete trial of the session."""
+        report = usable_trials(self)
+        tid = int(trial_id)
+        if tid in report.excluded:
+            raise SessionError(f"trial {tid} is excluded: {report.excluded[tid]}; its data are not used")
+        if tid not in report.ids:
+            raise KeyError(f"trial {tid} is not a complete trial of {self.path.name}")
+        return self.trial(tid)
+
 
 def open_session(path: str | os.PathLike[str]) -> Session:
     """Open a session file read-only (:class:`Session`, which says what it checks).

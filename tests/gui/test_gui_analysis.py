@@ -642,3 +642,33 @@ def test_a_stage_that_counts_nothing_is_busy_not_100_percent():
     assert job.fraction == 1.0
     job._on_progress(ProgressEvent("force fit", 0, None, "fitting force coefficients on 40 trials ...", ""))
     assert job.fraction == 0.0 and "force coefficients" in job.message  # the tab shows a busy bar
+
+
+def test_a_tampered_trial_is_not_shown_by_the_trial_view(lone_tab, qapp, tmp_path):
+    """The trial view reads a session's trial through storage's one validator (issue 77 item 7: "one validator for
+    every command"): a trial whose taxels were edited after rigctl sealed them (a plain h5py edit) is not drawn,
+    the window gives the validator's reason, and the view shows no other trial in its place; its neighbours are
+    drawn. Before, the view drew the edited readings as the trial's."""
+    import h5py
+
+    from rigctl.core import SensorLayout
+
+    layout = SensorLayout.grid(3, 3, 1, sample_rate_hz=100.0, name="lab finger 3x3")
+    path = _layout_session(tmp_path / "tampered.h5", layout, ["Linen", "Denim", "Felt", "Silk"])
+    with h5py.File(path, "r+") as f:  # trial 6: one reading changed by one count
+        idx = f["recording/index"][()]
+        t = int(idx[idx["trial_id"] == 6][0]["sample_start"]) + 20
+        f["recording/taxels"][t, 3] = int(f["recording/taxels"][t, 3]) + 1
+    tab = lone_tab
+    tab.open(str(path))
+    tab.trials.selectRow(5)
+    assert wait_for(qapp, lambda: tab._trial_job is None and tab.shown_tid == 5, 60), tab.status.text()
+    assert len(tab.trial_curves[0].getData()[0]) == 100
+    tab.trials.selectRow(6)
+    assert wait_for(qapp, lambda: tab._trial_job is None and "trial 6" in tab.status.text(), 60), tab.status.text()
+    status = tab.status.text()
+    assert "excluded" in status and "differ from the checksum sealed" in status, status
+    assert tab.shown_tid is None
+    assert all(c.getData()[0] is None or len(c.getData()[0]) == 0 for c in tab.trial_curves)  # trial 5 not left
+    tab.trials.selectRow(7)
+    assert wait_for(qapp, lambda: tab._trial_job is None and tab.shown_tid == 7, 60), tab.status.text()
