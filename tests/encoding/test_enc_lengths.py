@@ -70,7 +70,8 @@ def test_encode_warns_and_crops_and_analyze_names_what_sets_the_sample_size(tmp_
                    "--no-progress")
     assert rc == 0, out
     assert "trial durations differ by texture" in out, out
-    assert "the sample size is set by A (6 trials; median texture 8)" in out, out
+    # every trial used, each texture weighted equally (issue 77 item 7; the smallest count was drawn from each)
+    assert "the textures hold 6-10 trials (fewest: A (6)); using every trial up to --per-texture 500" in out, out
     rc, out = _run("encode", session, "--out", tmp_path / "c.h5", "--no-progress", "--variant", "original",
                    "--crop-s", 0.6)
     assert rc == 0 and "differ by texture" not in out, out
