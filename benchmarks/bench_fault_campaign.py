@@ -209,10 +209,10 @@ class AdviceWalk:
     def actions(self, faults: int) -> list[str]:
         """What the advice of ``faults`` (the controller's fault bits) has the operator do before acknowledging, done
         on the model rig, by its words: ACTUATOR_DIRECTION's "with nothing touching the sensor, read FORCE_G: far
-        from 0 g ... recalibrate ... change no wire. Else press the load cell by hand ... if it falls ... swap A+ and
-        A- ... If it rises ... watch the lead screw while the start's HOME creeps" (the doctor's hand press:
-        :func:`rigctl.acquisition.doctor.drum_checks.hand_press_change_g`; the watch: :meth:`watch_the_screw`),
-        LOADCELL_REVERSED's "press the load cell by hand ... If it falls ... swap A+ and A-", FORCE_LIMIT's "lower
+        from 0 g ... recalibrate ... change no wire. Else press the load cell by hand 3 times ... If they all fall ...
+        swap A+ and A- ... If they all rise ... watch the lead screw while the start's HOME creeps" (the doctor's hand
+        presses: :meth:`_hand_presses`; the watch: :meth:`watch_the_screw`), LOADCELL_REVERSED's "press the load
+        cell by hand 3 times ... If they all fall ... swap A+ and A-", FORCE_LIMIT's "lower
         the force setpoint" (by a fifth), HX711_STUCK's
         "Power-cycle the rig" (the controller powers on again, the HX711 with it); every other advice is a check,
         which finds nothing (the fault is a single hidden one)."""
@@ -230,11 +230,11 @@ class AdviceWalk:
                     done.append(f"{bit.name}: FORCE_G {at_rest_g:+.0f} g with nothing touching: recalibration "
                                 "asked, no wire changed")
                     continue
-                if not self._hand_press_swaps_the_cell(bit.name, done):
+                if self._hand_presses(bit.name, done) == "rise":  # the cell right: the screw watched, no wire yet
                     self.watch = True
                     done[-1] += ", the screw to be watched at the start"
-            elif "by hand" in advice and "swap A+ and A-" in advice:  # LOADCELL_REVERSED: "If it falls ... swap"
-                if not self._hand_press_swaps_the_cell(bit.name, done):
+            elif "by hand" in advice and "swap A+ and A-" in advice:  # LOADCELL_REVERSED: "If they all fall ... swap"
+                if self._hand_presses(bit.name, done) == "rise":
                     done[-1] += ", changed no wire (recalibration asked)"
             elif "lower the force setpoint" in advice:
                 self.force_g = max(100.0, 0.8 * self.force_g)
@@ -247,21 +247,30 @@ class AdviceWalk:
                 done.append(f"{bit.name}: checked, found nothing")
         return done
 
-    def _hand_press_swaps_the_cell(self, name: str, done: list[str]) -> bool:
-        """The advice's hand press (the doctor's: :func:`rigctl.acquisition.doctor.drum_checks.hand_press_change_g`):
-        a fall swaps A+ and A- (True); what it read is the last step of ``done`` either way."""
+    def _hand_presses(self, name: str, done: list[str]) -> str:
+        """The advice's hand press, repeated as it says (:data:`rigctl.core.drum.HAND_PRESS_STEP`; the doctor's:
+        :func:`rigctl.acquisition.doctor.drum_checks.hand_presses_g`), and what they say
+        (:func:`rigctl.core.drum.hand_press_verdict`): ``"fall"`` swaps A+ and A-, ``"rise"`` and ``"unclear"``
+        change no wire; what they read is the last step of ``done`` either way."""
         from rigctl.acquisition.doctor import DoctorContext
-        from rigctl.acquisition.doctor.drum_checks import hand_press_change_g
+        from rigctl.acquisition.doctor.drum_checks import HAND_PRESS_G, hand_presses_g
+        from rigctl.core.drum import hand_press_verdict
 
-        change = hand_press_change_g(DoctorContext("inprocess", rig=self.rig))
-        read = "nothing" if change is None else f"{change:+.0f} g"
-        if change is not None and change < 0:
+        changes = hand_presses_g(DoctorContext("inprocess", rig=self.rig))
+        if changes is None:
+            done.append(f"{name}: hand presses read nothing")
+            return "unclear"
+        read = ", ".join(f"{c:+.0f}" for c in changes)
+        verdict = hand_press_verdict(changes, HAND_PRESS_G)
+        if verdict == "fall":
             model = self.rig.backend.engine.model
             model.loadcell_sign = -model.loadcell_sign
-            done.append(f"{name}: hand press {read}, swapped A+ and A-")
-            return True
-        done.append(f"{name}: hand press {read}")
-        return False
+            done.append(f"{name}: hand presses {read} g, all fell: swapped A+ and A-")
+        elif verdict == "rise":
+            done.append(f"{name}: hand presses {read} g, all rose")
+        else:
+            done.append(f"{name}: hand presses {read} g, they disagree: changed no wire")
+        return verdict
 
     def watch_the_screw(self) -> str:
         """The operator's eyes on the lead screw during the start's HOME (ACTUATOR_DIRECTION's advice): a motor wired

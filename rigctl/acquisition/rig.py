@@ -247,6 +247,7 @@ class Rig:
         self.drum_boot_count: int | None = None
         #: unexpected resets of the drum controller seen while this rig used it
         self.drum_resets = 0
+        self._counted_boot: int | None = None  # the boot count whose reset drum_resets counted last
         #: warnings about the drum controller's state found when opening (bad EEPROM, calibration mismatch), in words
         self.warnings: list[str] = []
         #: frames the last trial's capture received (None before the first, or once the stream is known to work)
@@ -757,14 +758,19 @@ class Rig:
 
     def latch_unsafe(self, st: Any, what: str) -> None:
         """Latch the rig (:attr:`safety`) when the status ``st`` shows a latched fault, or a reset of the controller
-        since this rig homed it (BOOT_COUNT changed, or NOT_HOMED unasked). Nothing is cleared."""
+        since this rig homed it (BOOT_COUNT changed, or NOT_HOMED unasked). Nothing is cleared. One latch ``reset``
+        for a reset (issue 76): the controller's own (RESET, firmware 1.5: a reset away from home, which every face
+        finds) or, for one at rest it did not latch, the one this rig saw by the boot count."""
+        boot = getattr(st, "boot_count", None)
+        reset_seen = boot is not None and self.drum_boot_count is not None and boot != self.drum_boot_count
+        if reset_seen and boot != self._counted_boot:
+            self.drum_resets += 1
+            self._counted_boot = boot
         if st.state == DrumState.FAULT:
             latch = latch_from_faults(int(st.faults))
             self.safety.trip(replace(latch, detail=f"{what}: {latch.detail}"))
             return
-        boot = getattr(st, "boot_count", None)
-        if boot is not None and self.drum_boot_count is not None and boot != self.drum_boot_count:
-            self.drum_resets += 1
+        if reset_seen:
             self.safety.trip(Latch("reset", f"{what}: the drum controller reset (reset cause "
                                             f"{getattr(st, 'reset_cause', '?')}, boot count {self.drum_boot_count} -> "
                                             f"{boot}): it stopped and must be homed"))

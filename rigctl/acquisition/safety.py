@@ -35,7 +35,16 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rigctl.core.drum import CRUSH_NOTE, FAULT_WORDS, DrumError, DrumFault, DrumReset, Fault, describe_faults
+from rigctl.core.drum import (
+    CRUSH_NOTE,
+    FAULT_WORDS,
+    HAND_PRESS_STEP,
+    DrumError,
+    DrumFault,
+    DrumReset,
+    Fault,
+    describe_faults,
+)
 
 __all__ = ["Latch", "Acknowledgement", "ConfigResolution", "LatchedFault", "DrumStall", "SafetyLatch", "SafetyLog", "latch_for",
            "latch_from_faults", "CAUSES", "operator_name", "safety_log_path"]
@@ -49,15 +58,15 @@ _CRUSH = f" ({CRUSH_NOTE})"
 CAUSES: dict[str, tuple[str, str]] = {
     "estop": ("e-stop", "release the e-stop"),
     "force-limit": ("force limit exceeded", "check the plate and the sensor, lower the force setpoint" + _CRUSH),
-    "reversed-cell": ("load cell reversed", "press the load cell by hand and read FORCE_G: if it falls, swap A+/A- "
-                      "at the HX711 (or turn the cell over); if it rises, change no wire and recalibrate it (its zero "
-                      "or scale is wrong)" + _CRUSH),
+    "reversed-cell": ("load cell reversed", HAND_PRESS_STEP + ": if they all fall, swap A+/A- at the HX711 (or turn "
+                      "the cell over); if they all rise, change no wire and recalibrate it (its zero or scale is "
+                      "wrong)" + _CRUSH),
     "watchdog": ("host watchdog expired", "make sure the host program and its USB link are alive"),
     "loadcell-timeout": ("load cell not responding", "check the HX711's wiring"),
     "actuator-direction": ("actuator turning the wrong way or load cell reversed",
                            "with nothing touching the sensor read FORCE_G: far from 0 g, recalibrate the load cell and "
-                           "change no wire; else press the load cell by hand and read FORCE_G: if it falls, the cell "
-                           "is reversed: swap A+/A- at the HX711, not the motor's coils; if it rises, watch the lead "
+                           "change no wire; else " + HAND_PRESS_STEP + ": if they all fall, the cell "
+                           "is reversed: swap A+/A- at the HX711, not the motor's coils; if they all rise, watch the lead "
                            "screw while HOME creeps and swap one coil pair of the actuator motor only if you see it "
                            "close the gap to the sensor (rigctl doctor --check actuator-direction)" + _CRUSH),
     "actuator-travel": ("actuator end of travel", "mount a plate, check the gap between drum and sensor (and that "
@@ -65,7 +74,7 @@ CAUSES: dict[str, tuple[str, str]] = {
                                                   "rear stop while its steps count on)"),
     "home-failed": ("HOME failed", "check the home switch and its wire"),
     "hx711-rate": ("wrong HX711 rate", "set the HX711's RATE pin (or the rig config's force_loop) to match"),
-    "reset": ("unexpected controller reset", "check the controller's power and reset line"),
+    "reset": ("controller reset", "check the controller's power and reset line, and that nothing presses the sensor"),
     "stall": ("drum stalled or slipping", "free the drum (nothing may block it), check its coupling, the stepper and "
               "its driver's current"),
     "contact-stiffness": ("contact too stiff", "use a softer sensor mount or pad, or store slower force-loop gains (the "
@@ -88,7 +97,7 @@ _FAULT_CAUSES: tuple[tuple[Fault, str], ...] = (
     (Fault.HOME_NOT_FOUND, "home-failed"), (Fault.HX711_RATE, "hx711-rate"),
     (Fault.DRUM_SLIP, "stall"), (Fault.CONTACT_STIFFNESS, "contact-stiffness"), (Fault.HX711_LINE, "hx711-line"),
     (Fault.HX711_CADENCE, "hx711-cadence"), (Fault.HX711_STUCK, "hx711-stuck"), (Fault.POSITION_LIMIT, "position-limit"),
-    (Fault.CONTACT_LOST, "contact-lost"),
+    (Fault.CONTACT_LOST, "contact-lost"), (Fault.RESET, "reset"),
 )
 
 

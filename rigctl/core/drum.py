@@ -37,6 +37,7 @@ __all__ = [
     "DRUM_MARKS_PER_REV", "DRUM_SLIP_TOLERANCE",
     "STATE_TEXT", "FAULT_WORDS", "ACTUATOR_DIRECTION_CAUSES", "CRUSH_FAULTS", "CRUSH_NOTE",
     "FaultWords", "describe_state", "describe_faults", "fault_advice",
+    "HAND_PRESSES", "HAND_PRESS_AGREE", "HAND_PRESS_STEP", "hand_press_verdict",
     "PRESSING_G", "HOME_TOLERANCE_MM", "actuator_words", "status_line",
     "DrumError", "DrumTimeout", "DrumWaitAborted", "DrumFault", "DrumReset", "SetpointRangeError", "Clock",
 ]
@@ -84,6 +85,7 @@ class Fault(enum.IntFlag):
     HX711_LINE = 1 << 13
     HX711_CADENCE = 1 << 14
     CONTACT_LOST = 1 << 15
+    RESET = 1 << 16  # FAULT_BITS_HI bit 0 (firmware 1.5)
 
 
 class ResetCause(enum.IntFlag):
@@ -132,16 +134,46 @@ class FaultWords(NamedTuple):
     advice: str
 
 
+#: the hand press that tells a reversed load cell from a right one, in one place (issue 75 item 4): repeated, and a
+#: wire is changed only on presses that agree. One press on a noisy DOUT line read -528, -1,745 and -824 g for a 200 g
+#: mass on a good cell, and the advice had A+/A- swapped (the advice walker's fresh seed 736172): HAND_PRESSES
+#: presses of the same weight, each within HAND_PRESS_AGREE of it and all one sign (:func:`hand_press_verdict`)
+HAND_PRESSES = 3
+#: how far each hand press may read from the weight pressed and still count, as a fraction of it
+HAND_PRESS_AGREE = 0.5
+#: the hand press in words, for every advice that asks for it (FAULT_WORDS, the rig's latch causes, the doctor)
+HAND_PRESS_STEP = (
+    f"press the load cell by hand {HAND_PRESSES} times with the same weight (a 200 g mass) and read FORCE_G after "
+    f"each: only presses that all read about that weight (within half of it) and all the same way tell anything; "
+    f"presses that disagree or are far from it are a noisy reading, not a wiring: change no wire, check the HX711's "
+    f"DOUT and SCK wires")
+
+
+def hand_press_verdict(changes_g: "list[float] | tuple[float, ...]", weight_g: float) -> str:
+    """What :data:`HAND_PRESSES` hand presses of ``weight_g`` read as changes of FORCE_G (g) say: ``"fall"`` (every
+    one fell by the weight within :data:`HAND_PRESS_AGREE` of it: the cell reads reversed), ``"rise"`` (every one rose
+    so: the cell is right), ``"unclear"`` (fewer presses, or presses that disagree or are far from the weight: a noisy
+    reading, no wire to change)."""
+    lo, hi = (1.0 - HAND_PRESS_AGREE) * weight_g, (1.0 + HAND_PRESS_AGREE) * weight_g
+    if len(changes_g) < HAND_PRESSES:
+        return "unclear"
+    if all(lo <= -c <= hi for c in changes_g):
+        return "fall"
+    if all(lo <= c <= hi for c in changes_g):
+        return "rise"
+    return "unclear"
+
+
 #: the two wirings behind ACTUATOR_DIRECTION and how to tell them apart before changing either (issue 55): a
 #: reversed load cell reads the force falling as the actuator presses, so after a reset under load, backing off (or
 #: HOME) reads as a rise; swapping the motor's coils then would drive HOME into the sensor
 ACTUATOR_DIRECTION_CAUSES = (
     "Tell the causes apart before changing any wire, the most likely first. With nothing touching the sensor, read "
     "FORCE_G (the status line): far from 0 g, the load cell's zero moved since its calibration (a mount changed, a "
-    "cable pulled): recalibrate it (rigctl calibrate) and change no wire. Else press the load cell by hand and read "
-    "FORCE_G (rigctl doctor --check actuator-direction does it on a simulated rig): if it falls, the cell reads "
+    "cable pulled): recalibrate it (rigctl calibrate) and change no wire. Else " + HAND_PRESS_STEP + " (rigctl "
+    "doctor --check actuator-direction does it on a simulated rig). If they all fall, the cell reads "
     "reversed (A+/A- swapped at the HX711): swap A+ and A- and leave the motor alone (swapping its coils would drive "
-    "HOME into the sensor). If it rises, the cell is right, and that alone does not make the motor wrong: acknowledge "
+    "HOME into the sensor). If they all rise, the cell is right, and that alone does not make the motor wrong: acknowledge "
     "and watch the lead screw while the start's HOME creeps (it proves its way and stops where it is wrong). Only if "
     "you see it close the gap to the sensor where it should open it, power off and swap one coil pair of the actuator "
     "motor (1A/1B); if it moves the right way, change no wire: check the home switch and its wire and the HX711's "
@@ -186,8 +218,8 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "the force read negative while pressing: the load cell is mounted or wired the other way round, or its "
         "scale has the wrong sign",
         "the force went below -2 x FORCE_TOLERANCE_G while pressing. Tell the causes apart before changing any "
-        "wire: press the load cell by hand and read FORCE_G. If it falls, the cell is mounted or wired the other way "
-        "round: swap A+ and A- at the HX711 (or turn the cell over), then recalibrate. If it rises, the cell and its "
+        "wire: " + HAND_PRESS_STEP + ". If they all fall, the cell is mounted or wired the other way "
+        "round: swap A+ and A- at the HX711 (or turn the cell over), then recalibrate. If they all rise, the cell and its "
         "wires are right and its zero or scale is not (a tare taken under load, a mount changed since calibration): "
         "change no wire, recalibrate it (rigctl calibrate)."),
     Fault.HOME_NOT_FOUND: FaultWords(
@@ -261,6 +293,14 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "reading is not the contact's (frozen, or the load cell is loaded by something else). The trial is not "
         "recorded; it stopped where it stood (the channels disagree: a back-off's direction is unproven; the start's "
         "HOME creeps and proves it). Check the load cell and the HX711, then CLEAR_FAULT."),
+    Fault.RESET: FaultWords(
+        "controller reset",
+        "the controller reset while its actuator was away from home (its warm-boot record), or powered up with the "
+        "load cell loaded against its stored zero, or holds such a latch from before a power cycle",
+        "the drum controller was reset (power, its reset line, a port opening, its own watchdog) while the actuator "
+        "may have been pressing: it latched this itself, so every program that opens the rig finds it, and it moves "
+        "nothing. Check the controller's power and reset line and that nothing presses the sensor, then CLEAR_FAULT; "
+        "the start after it HOMEs from an unknown position (creeping, its way proven)."),
 }
 
 

@@ -36,7 +36,8 @@ __all__ = ["FAULTS", "FaultSpec", "FaultSpecError", "FaultSchedule", "FaultInjec
 #: every fault ``--inject`` knows: name -> what it does on a rig (one line)
 FAULTS: dict[str, str] = {
     "estop": "the e-stop is pressed at T and released at T+D (its contact opens: drivers off at once, ESTOP latched)",
-    "reset": "the drum controller resets at T (a reset under load: NOT_HOMED, drivers off); D is not used",
+    "reset": "the drum controller resets at T (under load or in motion it latches RESET itself: FAULT, drivers off; "
+             "else NOT_HOMED); D is not used",
     "reversed-cell": "the load cell reads reversed (negative under load) from T to T+D",
     "reversed-actuator": "the actuator moves the wrong way (away from the sensor when the loop presses) from T to T+D",
     "host-silence": "the host's link to the drum controller is cut (USB pulled) from T to T+D: nothing reaches it",

@@ -114,7 +114,7 @@ class DrumStatus(core_drum.DrumStatus):
             revolutions=regs[IR.DRUM_REVOLUTIONS],
             actuator_mm=_s16(regs[IR.ACTUATOR_POSITION_0P01MM]) / 100.0,
             state=DrumState(regs[IR.STATE]),
-            faults=Fault(regs[IR.FAULT_BITS]),
+            faults=Fault(regs[IR.FAULT_BITS] | (regs[IR.FAULT_BITS_HI] << 16)),
             firmware=(fw >> 8, fw & 0xFF),
             heartbeat=regs[IR.HEARTBEAT],
             loadcell_raw=raw,

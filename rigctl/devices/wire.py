@@ -152,7 +152,7 @@ UNO_FIRMWARE_VERSION = (1, 0)
 # --------------------------------------------------------------------------------------------------------------
 DRUM_BAUD = 500_000
 DRUM_DEVICE_ID = 1
-MEGA_FIRMWARE_VERSION = (1, 4)
+MEGA_FIRMWARE_VERSION = (1, 5)
 
 
 class HoldingRegister(enum.IntEnum):
@@ -248,6 +248,7 @@ class InputRegister(enum.IntEnum):
     RESET_CAUSE = 13
     BOOT_COUNT = 14
     STATUS_FLAGS = 15
+    FAULT_BITS_HI = 16
     HX711_RATE_0P01SPS = 20
     INDEX_SOURCE = 21
     INDEX_PERIOD_MS = 22

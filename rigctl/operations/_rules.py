@@ -45,7 +45,7 @@ class Event(enum.StrEnum):
     FAULT = "fault"                    # the controller latched a fault, or the host saw one (a stall)
     ESTOP_PRESSED = "e-stop pressed"
     ESTOP_RELEASED = "e-stop released"
-    CONTROLLER_RESET = "controller reset"  # BOOT_COUNT changed, or NOT_HOMED unasked
+    CONTROLLER_RESET = "controller reset"  # the controller's RESET, BOOT_COUNT changed, or NOT_HOMED unasked
     ACKNOWLEDGE = "acknowledge"        # an operator, with a reason (the fault dialog, POST /ack, --ack, --resume)
     START = "start"                    # the start: Resume, POST /runs/{id}/resume, /queue/release, press, run, Home
     STOP = "STOP"                      # every face's STOP (the button, Esc, POST /stop, Ctrl-C, the dead man's)
@@ -181,7 +181,8 @@ TRANSITIONS: dict[Event, tuple[Guard, Effect, tuple[str, ...]]] = {
     Event.CONTROLLER_RESET: (
         _never,
         lambda s: _stopped(s, latch=True),
-        ("the controller comes up NOT_HOMED, drivers off", "latch `reset` for every face until acknowledged",
+        ("the controller comes up NOT_HOMED, drivers off; away from home it latches RESET itself (firmware 1.5)",
+         "latch `reset` for every face until acknowledged",
          "a recording run pauses")),
     Event.ACKNOWLEDGE: (
         _ack_refusal,

@@ -130,6 +130,7 @@ class MegaController:
         self.writes: collections.deque[tuple[int, int, list[int]]] = collections.deque(maxlen=1000)
         self._loadcell_ok = True  # fault-injection hook: False = the HX711 stops answering
         self._warm_boots: int = 0  # warm resets since the last cold boot (BOOT_COUNT's low byte: RAM, spec 2.7)
+        self._warm_away = False  # the warm-boot record's flag (RAM, spec 2.7): the controller's `away` at a reset
         self._home_switch_ok = True  # fault-injection hook: False = the home switch never closes (a broken wire)
         self._hx_sck_broken = False  # fault-injection hook: SCK never clocks, DOUT held low, every read 0
         self._host_heard = True  # the link says the host is not silent (host_link)
@@ -171,6 +172,11 @@ class MegaController:
         c.zero_valid = zero is not None
         c.reset_cause = int(cause)
         c.boot_count = wire.boot_count_register(self.eeprom.boot_count, self._warm_boots)
+        # the reset latch (spec 2.7, issue 76): the warm-boot record (RAM: kept by a warm reset) and the EEPROM's
+        # safety record, as mega_drum.cpp's setup() hands them to ctl_boot
+        safety = self.eeprom.safety
+        lib.ctl_boot(c, not cold, not cold and self._warm_away, int(safety["reset_held"]), int(safety["ratchet_g"]))
+        self._warm_away = bool(c.away)
         self._ms = 0  # the controller's tick_ms: 0 at every reset
         self._steps_true_mm = 0.0  # the actuator's step count (in true mm of its lead screw): 0 wherever it stands
         self._pos_steps = 0
@@ -500,6 +506,8 @@ class MegaController:
         if c.save_calibration:
             self._save_calibration()
             c.save_calibration = 0
+        self._warm_away = bool(c.away)  # warm_record_away: RAM only
+        self.eeprom.save_safety(int(c.ee_reset_held), int(c.ee_ratchet_g))  # safety_save: only when it changed
         new = c.faults & ~self._logged_faults
         if new:
             log.warning("virtual Mega fault: %s", Fault(new).name or f"0x{new:x}")  # named, not a bare number

@@ -27,13 +27,16 @@ class EmulatedEeprom:
 
     Attributes
     ----------
-    data : ``{"calibration": record or None (erased), "boot_count": cold boots (0xFFFF erased)}``; a record is
+    data : ``{"calibration": record or None (erased), "boot_count": cold boots (0xFFFF erased), "safety": the safety
+        record or None (:attr:`safety`)}``; a calibration record is
         ``{"scale_x100", "actuator_steps_per_mm", "zero_raw" (optional), "crc"}``.
     """
 
     def __init__(self, path: str | Path | None = None) -> None:
         self.path = Path(path) if path else None
-        self.data: dict[str, Any] = {"calibration": None, "boot_count": 0xFFFF}
+        self.data: dict[str, Any] = {"calibration": None, "boot_count": 0xFFFF, "safety": None}
+        #: the safety record's writes so far (``safety_save`` writes only when it changes: the wear tests)
+        self.safety_writes = 0
         self._read_file()
 
     @staticmethod
@@ -69,6 +72,9 @@ class EmulatedEeprom:
             rec["crc"] = self._record_crc(rec)
             self.data["calibration"] = rec
         self.data["boot_count"] = int(data.get("boot_count", 0xFFFF)) & 0xFFFF
+        safety = data.get("safety")
+        if isinstance(safety, dict) and {"reset_held", "ratchet_g"} <= set(safety):
+            self.data["safety"] = {"reset_held": int(bool(safety["reset_held"])), "ratchet_g": int(safety["ratchet_g"])}
 
     def _write_file(self) -> None:
         if self.path:
@@ -82,6 +88,22 @@ class EmulatedEeprom:
     def count_cold_boot(self) -> None:
         """A cold boot (power-on, brown-out): the counter + 1, written."""
         self.data["boot_count"] = (self.data["boot_count"] + 1) & 0xFFFF
+        self._write_file()
+
+    @property
+    def safety(self) -> dict[str, int]:
+        """The safety record (firmware 1.5, ``ee_safety``): ``reset_held`` (a RESET latch not yet cleared) and
+        ``ratchet_g`` (the load ratchet, g); zeros when none is stored."""
+        return dict(self.data["safety"] or {"reset_held": 0, "ratchet_g": 0})
+
+    def save_safety(self, reset_held: int, ratchet_g: int) -> None:
+        """``safety_save``: the record written when it differs from the one stored (none stored and nothing to
+        store: no write)."""
+        rec = {"reset_held": int(bool(reset_held)), "ratchet_g": int(ratchet_g)}
+        if rec == self.safety and (self.data["safety"] is not None or not any(rec.values())):
+            return
+        self.data["safety"] = rec
+        self.safety_writes += 1
         self._write_file()
 
     def save(self, scale_x100: int, actuator_steps_per_mm: int, zero_raw: int | None) -> None:

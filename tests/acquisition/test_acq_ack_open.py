@@ -167,3 +167,40 @@ def test_a_reset_one_face_saw_is_latched_for_the_next_until_acknowledged(tmp_pat
             third.acknowledge("reset checked: power and reset line", by="tester")
         with open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json") as fourth:
             assert fourth.latch is None
+
+
+def test_a_reset_under_load_no_face_saw_is_latched_by_the_controller_for_the_next(tmp_path, monkeypatch):
+    """Issue 76 item 5: the controller latches a reset under load itself (its warm-boot record: RESET in
+    FAULT_BITS_HI), so a face that never saw the reset finds the latch: here the next face runs with a rig log of its
+    own (another computer; the face that pressed is gone), and `rigctl acquire` there exits 1 naming it, nothing
+    moved. Its acknowledgement moves nothing (reset is not start); the face after it opens unlatched."""
+    from rigctl.simulation.rig import SimulatedRig
+
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state-a"))
+    proto = tmp_path / "p.toml"
+    proto.write_text(PROTOCOL)
+    with SimulatedRig(port_dir=tmp_path / "ports") as sim:
+        source = RigSource("hardware", drum_port=sim.drum_port, taxel_port=sim.taxel_port)
+        with open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json") as first:
+            first.press(200.0)
+            sim.mega.reset()  # a reset pulse under load (brown-out, the reset line, the next port opening's DTR)
+            pressed_mm, pressed_g = sim.model.actuator_mm, sim.model.contact_force_g
+        assert pressed_g > 100.0  # still pressing: the reset left the actuator where it stood
+        assert Fault.RESET in sim.mega.faults and sim.mega.state == DrumState.FAULT
+        monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state-b"))  # a face whose rig log never saw it
+        args = ["acquire", str(proto), "--drum-port", sim.drum_port, "--taxel-port", sim.taxel_port, "--plates",
+                "auto", "--out", str(tmp_path / "s.h5"), "--quiet"]
+        refused = CliRunner().invoke(cli, args)
+        assert refused.exit_code == 1 and "reset" in refused.output, refused.output
+        assert "Traceback" not in refused.output and not (tmp_path / "s.h5").exists()
+        assert sim.model.actuator_mm == pressed_mm
+        with open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json") as second:
+            assert second.latch is not None and second.latch.cause == "reset", second.latch
+            assert Fault.RESET in Fault(second.latch.faults)
+            second.acknowledge("reset checked: the sensor is free", by="tester")
+            second.drum.clock.sleep(1.0)
+            assert sim.model.actuator_mm == pressed_mm  # the acknowledgement moved nothing
+            assert sim.mega.state == DrumState.NOT_HOMED
+        with open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json") as third:
+            assert third.latch is None

@@ -655,6 +655,10 @@ def test_a_reversed_cell_after_a_reset_under_load_is_named_and_its_advice_never_
         rig.press(1000)
         eng.faults.apply_fault(parse_fault("reversed-cell@1"), True)  # swapped and reset in the same instant
         eng.controller.reset(ResetCause.EXTERNAL)
+        # a reset under load: the controller latches it itself (RESET, firmware 1.5, issue 76); acknowledged, nothing
+        # moves, and the doctor's check HOMEs from NOT_HOMED
+        assert Fault.RESET in rig.drum.read_status().faults
+        rig.acknowledge("the reset under load checked", by="pytest")
         ctx = doctor.DoctorContext("inprocess", rig=rig)
         r = doctor.run_doctor(doctor.select(["actuator-direction"]), ctx).results[0]
         st = rig.drum.read_status()

@@ -60,6 +60,17 @@ class Bench:
     def send(self, command: str) -> None:
         self.rig._running(self.rig._mega, "Mega").send(command)
 
+    def reset_under_load(self) -> None:
+        """The MCU reset while the actuator is away from home: the controller latches RESET itself (firmware 1.5,
+        issue 76: its warm-boot record), then the host's boot and the operator's CLEAR_FAULT (nothing moves)."""
+        self.send("reset")
+        self.sim_wait(0.05)
+        st = self.wait(lambda s: Fault.RESET in s.faults, 5)
+        assert st.state == State.FAULT and Fault.RESET in st.faults, st
+        self.boot()
+        if Fault.RESET in self.drum.read_status().faults:
+            self.drum.clear_fault()
+
     def inject(self, spec: str) -> None:
         self.rig.faults.apply_fault(parse_fault(spec), True)
 
@@ -124,9 +135,7 @@ def test_reversed_actuator_reset_under_load_home_cannot_crush(bench, sps, k, for
     home(b.drum)
     b.press_settled(force)
     b.inject("reversed-actuator@0")
-    b.send("reset")
-    b.sim_wait(0.05)
-    b.boot()
+    b.reset_under_load()
     assert b.drum.read_status().state == State.NOT_HOMED
     for attempt in range(4):
         try:
@@ -258,9 +267,7 @@ def test_reversed_cell_after_a_reset_under_load_and_walking_the_advice(bench, sp
     home(b.drum)
     b.press_settled(1000)
     b.inject("reversed-cell@0")
-    b.send("reset")
-    b.sim_wait(0.05)
-    b.boot()
+    b.reset_under_load()
     b.drum.home()
     st = b.wait(lambda s: s.state != State.HOMING, 60)
     assert st.state == State.IDLE and st.homed, st

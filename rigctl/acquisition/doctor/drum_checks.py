@@ -26,12 +26,15 @@ from rigctl.core.drum import (
     DRUM_MICROSTEPS,
     DRUM_SPEED_TOLERANCE,
     DRUM_STEPS_PER_REV,
+    HAND_PRESSES,
     DrumState,
     fault_advice,
+    hand_press_verdict,
 )
 from rigctl.core.interfaces import MassPlacer
 
-__all__ = ["CHECKS", "ACTUATOR_DIRECTION_FIX", "ACTUATOR_REVERSED_FIX", "CELL_REVERSED_FIX", "hand_press_change_g",
+__all__ = ["CHECKS", "ACTUATOR_DIRECTION_FIX", "ACTUATOR_REVERSED_FIX", "CELL_REVERSED_FIX", "NOISY_PRESS_FIX",
+           "hand_press_change_g", "hand_presses_g",
            "DRUM_DIRECTION_FIX", "POLARITY_SETPOINT_G", "STEP_SETPOINT_G",
            "MAX_OVERSHOOT_PCT", "MAX_SETTLING_S"]
 
@@ -148,6 +151,10 @@ CELL_REVERSED_FIX = ("the load cell reads a press as a fall: the cell is reverse
                      "swap the cell's signal wires A+ and A- at the HX711 (or turn the cell over); leave the actuator "
                      "motor's coils as they are (swapping them would drive HOME into the sensor); then HOME and "
                      f"calibrate again; {CRUSH_NOTE}")
+#: ... once the hand presses disagreed (issue 75, 736172: -528, -1,745 and -824 g for 200 g on a noisy DOUT line)
+NOISY_PRESS_FIX = ("the hand presses do not agree with each other or with the weight: the reading is noisy or does not "
+                   "follow the cell, which no wire swap mends: change no wire; check the HX711's DOUT and SCK wires "
+                   f"and its power, then press again; {CRUSH_NOTE} (docs/hardware/wiring.md, actuator direction)")
 #: the hand press the doctor makes on a simulated rig (a mass rested on the cell), g, and how long it waits for the
 #: HX711 to show it (4 periods of its sinc^4 filter at 10 SPS and the conversion after), s
 HAND_PRESS_G = 200.0
@@ -181,6 +188,19 @@ def hand_press_change_g(ctx: DoctorContext) -> float | None:
     return pressed - before
 
 
+def hand_presses_g(ctx: DoctorContext, n: int = HAND_PRESSES) -> list[float] | None:
+    """The advice's hand press repeated ``n`` times (:data:`rigctl.core.drum.HAND_PRESS_STEP`: a wire is changed only
+    on presses that agree, :func:`rigctl.core.drum.hand_press_verdict`): each press's change of FORCE_G, g
+    (:func:`hand_press_change_g`); None on a rig the doctor cannot press."""
+    changes = []
+    for _ in range(n):
+        change = hand_press_change_g(ctx)
+        if change is None:
+            return None
+        changes.append(change)
+    return changes
+
+
 def check_actuator_direction(ctx: DoctorContext) -> CheckResult:
     """HOME proves the actuator's direction (docs/wire-protocol.md 2.5): the home switch opened when HOME left home
     and closed when it came back, and the load cell's untared force did not rise meanwhile. HOMEs again if the
@@ -200,20 +220,21 @@ def check_actuator_direction(ctx: DoctorContext) -> CheckResult:
     if direction in st.faults:
         seen = ("HOME's direction proof failed: the load cell's reading rose (or the home switch did not open) while "
                 "the firmware drove the actuator home (ACTUATOR_DIRECTION)")
-        change = hand_press_change_g(ctx)
-        if change is None:
+        changes = hand_presses_g(ctx)
+        if changes is None:
             return failed("actuator-direction", f"{seen}: the actuator or the load cell is reversed",
                           ACTUATOR_DIRECTION_FIX)
-        if change > HAND_PRESS_G / 2:
-            return failed("actuator-direction", f"{seen}; a {HAND_PRESS_G:g} g press on the load cell read "
-                          f"{change:+.0f} g: the cell is right, so the actuator turns the wrong way or the reading moved by "
-                          "itself",
-                          ACTUATOR_REVERSED_FIX, hand_press_change_g=change)
-        if change < -HAND_PRESS_G / 2:
-            return failed("actuator-direction", f"{seen}; a {HAND_PRESS_G:g} g press on the load cell read "
-                          f"{change:+.0f} g: the load cell is reversed", CELL_REVERSED_FIX, hand_press_change_g=change)
-        return failed("actuator-direction", f"{seen}; a {HAND_PRESS_G:g} g press on the load cell read {change:+.0f} "
-                      "g: the cell does not answer", ACTUATOR_DIRECTION_FIX, hand_press_change_g=change)
+        read = ", ".join(f"{c:+.0f}" for c in changes)
+        said = f"{seen}; {len(changes)} presses of {HAND_PRESS_G:g} g on the load cell read {read} g"
+        verdict = hand_press_verdict(changes, HAND_PRESS_G)
+        if verdict == "rise":
+            return failed("actuator-direction", f"{said}: the cell is right, so the actuator turns the wrong way or the "
+                          "reading moved by itself", ACTUATOR_REVERSED_FIX, hand_press_change_g=min(changes))
+        if verdict == "fall":
+            return failed("actuator-direction", f"{said}: the load cell is reversed", CELL_REVERSED_FIX,
+                          hand_press_change_g=max(changes))
+        return failed("actuator-direction", f"{said}: they do not agree (a noisy reading, or a cell that does not "
+                      "answer): change no wire", NOISY_PRESS_FIX, hand_press_change_g=changes[-1])
     if not st.homed:
         raise Skip(f"the controller is not homed (state {st.state.name}): see controller-faults")
     return passed("actuator-direction", "HOME left the home switch (it opened) and came back to it (it closed): the "

@@ -104,7 +104,7 @@
 #define RIGCTL_DRUM_BAUD             500000UL
 #define RIGCTL_DRUM_DEVICE_ID        1
 #define RIGCTL_MEGA_FW_MAJOR         1
-#define RIGCTL_MEGA_FW_MINOR         4
+#define RIGCTL_MEGA_FW_MINOR         5
 #define RIGCTL_MEGA_FIRMWARE_VERSION ((RIGCTL_MEGA_FW_MAJOR << 8) | RIGCTL_MEGA_FW_MINOR)
 
 /* Modbus function codes and exception codes used by the spec */
@@ -226,6 +226,7 @@
 #define RIGCTL_IREG_RESET_CAUSE              13
 #define RIGCTL_IREG_BOOT_COUNT               14
 #define RIGCTL_IREG_STATUS_FLAGS             15
+#define RIGCTL_IREG_FAULT_BITS_HI            16
 #define RIGCTL_IREG_HX711_RATE_0P01SPS       20
 #define RIGCTL_IREG_INDEX_SOURCE             21
 #define RIGCTL_IREG_INDEX_PERIOD_MS          22
@@ -300,6 +301,9 @@
 #define RIGCTL_FAULT_HX711_CADENCE         (1u << RIGCTL_FAULT_HX711_CADENCE_BIT)
 #define RIGCTL_FAULT_CONTACT_LOST_BIT      15
 #define RIGCTL_FAULT_CONTACT_LOST          (1u << RIGCTL_FAULT_CONTACT_LOST_BIT)
+/* bits 16-31: FAULT_BITS_HI (firmware 1.5; the fault word is 32 bits, masks unsigned long) */
+#define RIGCTL_FAULT_RESET_BIT             16
+#define RIGCTL_FAULT_RESET                 (1UL << RIGCTL_FAULT_RESET_BIT)
 #define RIGCTL_LOADCELL_TIMEOUT_MS         200
 #define RIGCTL_HOME_MAX_TRAVEL_MM          25
 #define RIGCTL_HOME_TIMEOUT_MS             10000

@@ -364,6 +364,124 @@ static void press_settled(ctl_t &c, Plant &p, uint32_t &now, uint16_t g)
     CHECK(c.state == RIGCTL_STATE_FORCE_SETTLED);
 }
 
+// mega_drum.cpp's reset as the controller sees it (spec 2.7, issue 76): the warm-boot record (RAM: `away`, kept
+// only by a warm reset) and the EEPROM safety record survive; the controller restarts from ctl_init and ctl_boot with
+// the calibration's stored zero
+static void reset_mcu(ctl_t &c, const Plant &p, uint32_t &now, bool warm)
+{
+    uint8_t away = c.away, held = c.ee_reset_held;
+    int16_t ratchet = c.ee_ratchet_g;
+    ctl_init(&c, 0, 0);
+    c.zero_raw = (int32_t)p.offset; // the calibration's stored zero: the unloaded cell
+    c.zero_valid = 1;
+    ctl_boot(&c, warm, warm && away, held, ratchet);
+    now = 0; // tick_ms restarts with the MCU
+}
+
+static void test_reset_latch()
+{
+    uint32_t now = 0;
+    {   // a warm reset under 1000 g (the warm-boot record says away): RESET latched by the controller, for every later
+        // host; a second warm reset and a power cycle keep it; CLEAR_FAULT clears it and moves nothing; HOME homes
+        ctl_t c;
+        Plant p;
+        ctl_init(&c, 0, 0);
+        run_ms(c, p, now, 30);
+        home(c, p, now);
+        CHECK(!c.away);
+        press_settled(c, p, now, 1000);
+        CHECK(c.away);
+        for (int boot = 0; boot < 3; boot++) {
+            reset_mcu(c, p, now, boot < 2); // warm, warm again (a port opening), then a power cycle
+            double x = p.x_mm;
+            run_ms(c, p, now, 1000);
+            std::printf("reset latch: boot %d (%s) under %.0f g: state %u faults 0x%lx\n", boot, boot < 2 ? "warm" : "cold",
+                        p.force(), c.state, (unsigned long)c.faults);
+            CHECK(c.state == RIGCTL_STATE_FAULT && (c.faults & RIGCTL_FAULT_RESET) && c.ee_reset_held);
+            CHECK(ctl_read_input(&c, RIGCTL_IREG_FAULT_BITS_HI) == 1 && ctl_read_input(&c, RIGCTL_IREG_FAULT_BITS) == 0);
+            CHECK(p.x_mm == x && c.act_vel_mm_s == 0.0f && !c.drivers_on);
+            CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS) && !write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_HOME));
+        }
+        double x = p.x_mm;
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT)); // the acknowledgement: reset is not start
+        run_ms(c, p, now, 2000);
+        CHECK(c.state == RIGCTL_STATE_NOT_HOMED && !c.faults && !c.ee_reset_held && !c.away);
+        CHECK(p.x_mm == x && c.act_vel_mm_s == 0.0f && !c.drivers_on);
+        reset_mcu(c, p, now, true); // acknowledged: a warm reset (the next port opening) latches nothing new
+        run_ms(c, p, now, 100);
+        CHECK(c.state == RIGCTL_STATE_NOT_HOMED && !c.faults);
+        home(c, p, now); // the start's HOME creeps from the unknown position and proves its way
+        CHECK(p.x_mm <= 0.0 && !c.away);
+    }
+    {   // a reset at rest: after a press and its release at home (proven back), and before anything moved, no latch
+        ctl_t c;
+        Plant p;
+        ctl_init(&c, 0, 0);
+        now = 0;
+        run_ms(c, p, now, 30);
+        reset_mcu(c, p, now, true); // powered up, nothing moved: the port opening's reset
+        run_ms(c, p, now, 100);
+        CHECK(c.state == RIGCTL_STATE_NOT_HOMED && !c.faults);
+        home(c, p, now);
+        press_settled(c, p, now, 500);
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_STOP));
+        run_ms(c, p, now, 3000);
+        CHECK(c.state == RIGCTL_STATE_IDLE && p.x_mm <= 0.01 && !c.away);
+        reset_mcu(c, p, now, true);
+        run_ms(c, p, now, 100);
+        CHECK(c.state == RIGCTL_STATE_NOT_HOMED && !c.faults);
+    }
+    for (int loaded = 0; loaded < 2; loaded++) { // a cold boot (no record): the load against the stored zero decides
+        ctl_t c;
+        Plant p;
+        p.x_mm = loaded ? p.gap + 1.2 : 0.0; // 300 g on the cell after a power cut under load, or at home
+        reset_mcu(c, p, now, false);
+        run_ms(c, p, now, 200);
+        std::printf("reset latch: cold boot at %.0f g: faults 0x%lx\n", p.force(), (unsigned long)c.faults);
+        CHECK(loaded ? (c.state == RIGCTL_STATE_FAULT && c.faults == RIGCTL_FAULT_RESET && c.ee_reset_held)
+                     : (c.state == RIGCTL_STATE_NOT_HOMED && !c.faults && !c.ee_reset_held));
+    }
+    {   // issue 75's load ratchet across resets: the home switch stuck closed under 1000 g (1 kg/mm, 80 SPS, sinc^4);
+        // each attempt a reset (the step count's ratchet lost with it: the RESET latch acknowledged), then HOME. The
+        // load at the first crush-class latch, kept in the EEPROM safety record, stops every later HOME's leave where
+        // it stands (HOME_NOT_FOUND); with the record lost at each boot, each reset's HOME adds one creep's rise
+        for (int kept = 1; kept >= 0; kept--) {
+            ctl_t c;
+            Plant p;
+            p.k = 1000;
+            p.sinc4 = true;
+            p.x_mm = p.gap + 1.0; // 1000 g on the cell
+            p.switch_stuck = true;
+            c.away = 0;
+            c.ee_reset_held = 0;
+            c.ee_ratchet_g = 0;
+            reset_mcu(c, p, now, false); // a power-up under load: RESET (the load against the stored zero)
+            run_ms(c, p, now, 100);
+            p.peak_g = 0;
+            double first_peak = 0, first_x = 0;
+            for (int attempt = 0; attempt < 4; attempt++) {
+                if (attempt) {
+                    if (!kept) c.ee_ratchet_g = 0; // the record lost (firmware 1.4 kept none)
+                    reset_mcu(c, p, now, true);
+                    run_ms(c, p, now, 100);
+                }
+                CHECK(c.state == RIGCTL_STATE_FAULT && (c.faults & RIGCTL_FAULT_RESET));
+                CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT));
+                CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_HOME));
+                for (int i = 0; i < 200 && c.state == RIGCTL_STATE_HOMING; i++) run_ms(c, p, now, 50);
+                if (!attempt) first_peak = p.peak_g, first_x = p.x_mm;
+                std::printf("load ratchet (record %s): reset %d, HOME: faults 0x%lx, x %.3f mm, peak %.0f g, kept %d g\n",
+                            kept ? "kept" : "lost", attempt, (unsigned long)c.faults, p.x_mm, p.peak_g, c.ee_ratchet_g);
+                CHECK(c.state == RIGCTL_STATE_FAULT && !c.homed);
+                if (attempt && kept) CHECK(c.faults == RIGCTL_FAULT_HOME_NOT_FOUND);
+            }
+            if (kept) CHECK(p.peak_g <= first_peak + 5.0 && p.x_mm <= first_x + 0.005 && c.ee_ratchet_g >= 1000);
+            else CHECK(p.peak_g >= first_peak + 3 * 20.0); // the hazard the record removes: a creep's rise per reset
+        }
+    }
+    std::printf("reset latch: ok\n");
+}
+
 // docs/wire-protocol.md 2.4-2.8: what a reset, a reversed cell, a broken home switch and the e-stop do
 // the first DOUT-ready edge after boot is a reading that waited (the HX711 converts through a reset and the
 // bootloader's wait): the rate is timed from the second edge, so a stale first one does not read the rate high
@@ -779,6 +897,7 @@ int main()
     test_controller();
     test_hx711_rate_stale_first_edge();
     test_safety();
+    test_reset_latch();
     test_stiffness();
     std::printf("%d checks, %d failures\n", checks, failures);
     return failures ? 1 : 0;

@@ -168,6 +168,18 @@ static void backoff_begin(ctl_t *c, float k_meas_g_per_step)
     c->backoff_phase = BACKOFF_REST;
 }
 
+/* the back-off's speed in its phase (spec 2.11): still until its way is proven (resting, settling on a proof step),
+ * a creep on a proof step, full speed once proven or unloaded. Set at the latch too, not only by the next tick
+ * (736038: a latch's back-off ran at full speed until the next control period, and its proof step at full speed for
+ * one: 45 um towards the sensor on a reversed motor); the proof step creeps at BACKOFF_PROOF_MM_S, so the 1 ms tick
+ * (or a model's 10 ms control period) ends it within a micrometre or two of its length */
+#define BACKOFF_PROOF_MM_S 0.2f
+static float backoff_speed(const ctl_t *c)
+{
+    if (c->backoff_phase == BACKOFF_REST || c->backoff_phase == BACKOFF_SETTLE) return 0.0f;
+    return c->backoff_phase == BACKOFF_STEP ? -BACKOFF_PROOF_MM_S : -ACT_MAX_SPEED_MM_S;
+}
+
 /* the actuator stops where it is (position unknown) or, homed, backs off to home */
 static void release_actuator(ctl_t *c)
 {
@@ -179,7 +191,7 @@ static void release_actuator(ctl_t *c)
             backoff_begin(c, k_meas);
         }
         c->act_mode = ACT_MODE_RETRACT;
-        c->act_vel_mm_s = -ACT_MAX_SPEED_MM_S;
+        c->act_vel_mm_s = backoff_speed(c);
     } else {
         c->act_mode = ACT_MODE_HOLD;
         c->act_vel_mm_s = 0.0f;
@@ -214,11 +226,41 @@ static void press_dir_forget(ctl_t *c)
     (RIGCTL_FAULT_FORCE_LIMIT | RIGCTL_FAULT_POSITION_LIMIT | RIGCTL_FAULT_ACTUATOR_DIRECTION |                   \
      RIGCTL_FAULT_CONTACT_LOST | RIGCTL_FAULT_CONTACT_STIFFNESS | RIGCTL_FAULT_LOADCELL_REVERSED)
 
-static void fault(ctl_t *c, uint16_t bits)
+/* ---- the load ratchet (spec 2.11, issue 75): the ratchet guard's step count is lost at a reset (the count restarts
+ * where the actuator stands), so a switch stuck closed let every reset's HOME leave it creeping until the load watch
+ * stopped it, one creep's rise (HOME_RISE_G) further each time. The load (|raw - zero|, g) at the first crush-class
+ * latch since the last HOME that proved the switch is kept in the EEPROM safety record (written at that latch and at
+ * that HOME only: no wear in normal use); no HOME leaves the switch into a load of at least that much (nor of
+ * HOME_RISE_G: the watch's own bound), whatever the count says: HOME_NOT_FOUND where it stands. */
+static void load_ratchet_latch(ctl_t *c)
+{
+    int32_t zero;
+    float d;
+    if (c->ee_ratchet_g || !c->have_reading || !direction_zero(c, &zero)) return; /* kept: the first latch's */
+    d = load_g(c, c->loadcell_raw, zero);
+    c->ee_ratchet_g = (int16_t)(d >= 32767.0f ? 32767 : (d < 1.0f ? 1 : (int16_t)(d + 0.5f)));
+}
+
+static uint8_t load_ratchet_reached(const ctl_t *c, float d)
+{
+    float at = (float)c->ee_ratchet_g;
+    if (at < (float)RIGCTL_HOME_RISE_G) at = (float)RIGCTL_HOME_RISE_G;
+    return c->ee_ratchet_g && c->act_mode == ACT_MODE_HOMING && c->home_phase == HOME_LEAVE && d >= at;
+}
+
+/* the same at every tick of HOME's leave, on the last reading: it does not start (or go on) into the ratchet's load */
+static uint8_t load_ratchet_reached_now(const ctl_t *c)
+{
+    int32_t zero;
+    return c->have_reading && direction_zero(c, &zero) && load_ratchet_reached(c, load_g(c, c->loadcell_raw, zero));
+}
+
+static void fault(ctl_t *c, uint32_t bits)
 {
     if (bits & RATCHET_FAULTS) { /* no start goes further towards the sensor than this (spec 2.11) */
         c->ratchet_valid = 1;
         c->ratchet_steps = c->act_pos_steps;
+        load_ratchet_latch(c); /* ... nor, across resets, into more load than this */
     }
     /* a latch while pressing backs off only the way the loop's motion proved; else it stops where it stands, not
      * homed (the start's HOME creeps and proves the way) */
@@ -234,7 +276,7 @@ static void fault(ctl_t *c, uint16_t bits)
 
 /* the actuator may not go where its steps say: its position means nothing, it stops where it stands (a back-off
  * would press if it runs backwards); the start's HOME creeps from an unknown position and proves the way (2.11) */
-static void stop_unproven(ctl_t *c, uint16_t bits)
+static void stop_unproven(ctl_t *c, uint32_t bits)
 {
     c->homed = 0;
     fault(c, bits);
@@ -253,6 +295,52 @@ void ctl_estop(ctl_t *c)
     c->homed = 0; /* the drivers lost power: steps may be lost */
     fault(c, RIGCTL_FAULT_ESTOP);
     c->drum_cmd_mm_s = 0.0f; /* the step timers were stopped in the ISR: no deceleration ramp */
+}
+
+/* ---- the reset latch (spec 2.7, issue 76): a reset that may have left the actuator pressing is latched here, by the
+ * controller, so that every later host finds it (the host that saw the reset may be gone, or may be the cause: a port
+ * opening resets a Mega). Latched: a warm reset whose warm-boot record says the actuator was away from home, a cold
+ * boot (the record lost with the RAM) whose first timed reading is loaded against the zero stored with the
+ * calibration, and, across power cycles, a RESET latch not yet cleared (the EEPROM safety record). CLEAR_FAULT is the
+ * operator's word for where the actuator stands: it clears the latch and the record, and moves nothing (reset is not
+ * start: the start's HOME creeps from an unknown position and proves its way). */
+static void reset_latch(ctl_t *c)
+{
+    c->away = 1;
+    c->ee_reset_held = 1; /* the glue writes the EEPROM record once (a latch: no wear in normal use) */
+    fault(c, RIGCTL_FAULT_RESET);
+}
+
+void ctl_boot(ctl_t *c, uint8_t warm, uint8_t was_away, uint8_t reset_held, int16_t ratchet_g)
+{
+    c->ee_ratchet_g = ratchet_g;
+    c->boot_load_check = 0;
+    if (reset_held || (warm && was_away)) reset_latch(c);
+    else if (!warm) c->boot_load_check = 1;
+}
+
+/* a cold boot decides at its first reading once the HX711's rate is timed (the converter settled): loaded against the
+ * stored zero by more than the power-up tare accepts (TARE_ZERO_AGREE_G), the actuator may be pressing (a power cut
+ * under load) or the cell's zero moved: either way nothing presses on it until the operator says which */
+static void boot_load_check(ctl_t *c, int32_t raw)
+{
+    if (!c->boot_load_check || !c->hx_rate_0p01) return;
+    c->boot_load_check = 0;
+    if (c->zero_valid && load_g(c, raw, c->zero_raw) > TARE_ZERO_AGREE_G) reset_latch(c);
+}
+
+/* the warm-boot record: away from the moment the actuator may move towards the sensor (the force loop, HOME) until it
+ * is proven back at home (homed, at rest, its step count at home or behind) or CLEAR_FAULT */
+static void away_watch(ctl_t *c)
+{
+    if (c->act_mode == ACT_MODE_FORCE || c->act_mode == ACT_MODE_HOMING) c->away = 1;
+    else if (c->homed && c->act_mode == ACT_MODE_HOLD && c->act_pos_steps <= 0) c->away = 0;
+}
+
+static void reset_latch_clear(ctl_t *c)
+{
+    c->away = 0;
+    c->ee_reset_held = 0;
 }
 
 /* ---- HX711 rate (spec 2.9) ---- */
@@ -476,7 +564,7 @@ static uint8_t command_allowed(const ctl_t *c, uint16_t cmd)
                (!c->tared || c->force_gf < 2.0f * (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]);
     case RIGCTL_CMD_HOME: /* from IDLE only with the actuator released (no load on the cell); NOT_HOMED: unless the
                            * cell is loaded past the limit (a direction unknown could only press it further, 2.11) */
-        if (home_overloaded(c)) return 0;
+        if (home_overloaded(c) || c->boot_load_check) return 0; /* nor before a cold boot's load is judged (2.7) */
         return s == RIGCTL_STATE_NOT_HOMED ||
                (s == RIGCTL_STATE_IDLE && c->force_gf < 2.0f * (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]);
     case RIGCTL_CMD_CLEAR_FAULT:
@@ -516,6 +604,7 @@ static void run_command(ctl_t *c, uint16_t cmd)
     case RIGCTL_CMD_CLEAR_FAULT:
         if (c->faults & RIGCTL_FAULT_ESTOP) c->estop_release = 1;
         c->faults = 0;
+        reset_latch_clear(c);
         if (c->state == RIGCTL_STATE_FAULT) c->state = c->homed ? RIGCTL_STATE_IDLE : RIGCTL_STATE_NOT_HOMED;
         break;
     case RIGCTL_CMD_PRESS:
@@ -565,7 +654,8 @@ uint16_t ctl_read_input(void *ctx, uint16_t addr)
     case RIGCTL_IREG_DRUM_REVOLUTIONS: return c->drum_revolutions;
     case RIGCTL_IREG_ACTUATOR_POSITION_0P01MM: return s16(act_pos_mm(c) * 100.0f);
     case RIGCTL_IREG_STATE: return c->state;
-    case RIGCTL_IREG_FAULT_BITS: return c->faults;
+    case RIGCTL_IREG_FAULT_BITS: return (uint16_t)(c->faults & 0xFFFFu);
+    case RIGCTL_IREG_FAULT_BITS_HI: return (uint16_t)(c->faults >> 16);
     case RIGCTL_IREG_FIRMWARE_VERSION: return RIGCTL_MEGA_FIRMWARE_VERSION;
     case RIGCTL_IREG_HEARTBEAT: return (uint16_t)(c->now_ms / 10);
     case RIGCTL_IREG_SPEED_TARGET_0P1MMS: return c->speed_target_0p1;
@@ -728,7 +818,7 @@ static void home_step(ctl_t *c, uint32_t now_ms)
             c->home_leave_steps = moved;
             c->home_phase_steps = c->act_pos_steps;
             c->act_vel_mm_s = -ACT_HOME_SPEED_MM_S;
-        } else if (c->ratchet_valid && c->act_pos_steps >= c->ratchet_steps) {
+        } else if ((c->ratchet_valid && c->act_pos_steps >= c->ratchet_steps) || load_ratchet_reached_now(c)) {
             break; /* the switch reads closed where the last latch stopped the actuator: it is not home */
         } else if ((float)moved >= (float)RIGCTL_HOME_LEAVE_UM * 1e-3f * spmm) {
             /* left creeping, the switch still closed and no load risen: the motor turns the other way (into its rear
@@ -746,8 +836,9 @@ static void home_step(ctl_t *c, uint32_t now_ms)
     default: /* HOME_RETURN */
         if (c->home_switch) {
             /* home: zero the position, then tare on the next reading (ctl_loadcell ends HOMING: IDLE is tared); the
-             * switch proven (left and returned), the ratchet is released */
+             * switch proven (left and returned), the ratchet is released, the load ratchet too */
             c->ratchet_valid = 0;
+            c->ee_ratchet_g = 0;
             c->act_vel_mm_s = 0.0f;
             c->act_mode = ACT_MODE_HOLD;
             c->zero_position = 1;
@@ -795,10 +886,8 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
             c->act_vel_mm_s = 0.0f; /* the proof step is done: hold until the HX711 has settled on it */
             c->backoff_phase = BACKOFF_SETTLE;
             c->backoff_readings = 0;
-        } else if (c->backoff_phase == BACKOFF_SETTLE || c->backoff_phase == BACKOFF_REST) {
-            c->act_vel_mm_s = 0.0f;
         } else {
-            c->act_vel_mm_s = -ACT_MAX_SPEED_MM_S;
+            c->act_vel_mm_s = backoff_speed(c);
         }
         break;
     case ACT_MODE_HOMING:
@@ -836,6 +925,8 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
         c->act_vel_mm_s = 0.0f;
         break;
     }
+
+    away_watch(c);
 
     /* the drivers are enabled only while something moves or the force loop holds (EN also drops in the e-stop ISR) */
     c->drivers_on = !(c->faults & RIGCTL_FAULT_ESTOP) && !c->estop_open &&
@@ -929,6 +1020,7 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
     }
     c->loadcell_raw = raw;
     c->have_reading = 1;
+    boot_load_check(c, raw);
     if (c->act_mode == ACT_MODE_RETRACT && c->backoff_phase == BACKOFF_REST && direction_zero(c, &zero)) {
         if (c->drum_cmd_mm_s > 0.0f || c->drum_actual_mm_s > 0.0f) c->backoff_readings = 0; /* the runout's ripple */
         else if (++c->backoff_readings > RIGCTL_HX711_RATE_PERIODS) {
@@ -967,6 +1059,10 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
                 direction_fault(c);
             }
             if (c->act_mode == ACT_MODE_HOMING && !c->homed && d > home_load_cap_g(c)) direction_fault(c);
+            if (load_ratchet_reached(c, d)) { /* the switch reads closed in the last latch's load: it is not home */
+                c->homed = 0;
+                fault(c, RIGCTL_FAULT_HOME_NOT_FOUND);
+            }
             if (c->home_creep && c->act_mode == ACT_MODE_HOMING && d <= c->home_d_start_g - RIGCTL_HOME_PROOF_FALL_G) {
                 c->home_creep = 0; /* the load fell: the direction is right, HOME goes on at its speed */
                 c->home_start_ms = c->now_ms;
@@ -983,10 +1079,11 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
     }
     /* never under load: only at home. After a reset the switch alone is no proof of home (a switch stuck closed reads
      * closed anywhere, under load too: issue 75): the power-up tare is taken only where the zero stored with the
-     * calibration agrees within TARE_ZERO_AGREE_G; HOME's own tare (its switch proven by leaving and returning) and
-     * a homed TARE always */
+     * calibration agrees within TARE_ZERO_AGREE_G; HOME's own tare (its switch proven by leaving and returning: at its
+     * end, not on a switch read closed while it seeks, which a switch stuck closed under load is) and a homed TARE
+     * always */
     if (c->tare_pending && c->home_switch &&
-        (c->homed || c->state == RIGCTL_STATE_HOMING || !c->zero_valid ||
+        (c->homed || (c->state == RIGCTL_STATE_HOMING && c->act_mode == ACT_MODE_HOLD) || !c->zero_valid ||
          load_g(c, raw, c->zero_raw) <= TARE_ZERO_AGREE_G)) {
         c->tare_offset = raw;
         c->tare_pending = 0;

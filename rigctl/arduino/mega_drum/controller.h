@@ -34,7 +34,7 @@ extern "C" {
 typedef struct {
     uint16_t hreg[RIGCTL_N_HOLDING]; /* hreg[LOADCELL_SCALE_X100] is the view of the 32-bit scale in HI/LO */
     uint8_t state;
-    uint16_t faults;
+    uint32_t faults;        /* FAULT_BITS (bits 0-15) and FAULT_BITS_HI (16-31) */
     /* safety (docs/wire-protocol.md 2.4-2.8) */
     uint8_t homed;          /* HOME succeeded since the last reset / e-stop / failed HOME */
     uint8_t tared;          /* a tare was taken since the last reset */
@@ -149,11 +149,24 @@ typedef struct {
     uint16_t mark_steps;
     uint16_t mark_count;
     uint8_t drum_slip;      /* input: more than DRUM_SLIP_STEPS since the last mark while stepped: DRUM_SLIP */
+    /* the reset latch (spec 2.7, issue 76): a reset that may have left the actuator pressing is latched by the
+     * controller itself (RESET), for every later host until CLEAR_FAULT (controller.c: ctl_boot) */
+    uint8_t away;           /* output, the warm-boot record: the actuator moved since it was last proven back at home
+                             * (or the operator's CLEAR_FAULT); the glue keeps it across a warm reset (RAM) */
+    uint8_t boot_load_check; /* a cold boot (no warm-boot record): the first timed reading's load decides */
+    /* the safety record the glue keeps in EEPROM, written only when it changes (a latch, its clearing) */
+    uint8_t ee_reset_held;  /* RESET latched and not yet cleared (kept across power cycles) */
+    int16_t ee_ratchet_g;   /* the load ratchet (spec 2.11): the load at the last crush-class latch, g; 0 = none */
 } ctl_t;
 
 /* power-up: defaults from the spec, calibration from EEPROM (0 = the default), state NOT_HOMED; the load cell is
  * tared on the first reading only if the home switch is closed then */
 void ctl_init(ctl_t *c, int32_t loadcell_scale_x100, uint16_t actuator_steps_per_mm);
+/* after ctl_init and the calibration (the zero stored with it): what the glue kept across the reset. `warm`: the
+ * warm-boot record (RAM) survived, `was_away` its flag; `reset_held`, `ratchet_g`: the EEPROM safety record. A reset
+ * away from home, or a RESET latch not yet cleared, latches RESET now; a cold boot decides at its first timed reading
+ * (the load against the stored zero). Nothing moves either way. */
+void ctl_boot(ctl_t *c, uint8_t warm, uint8_t was_away, uint8_t reset_held, int16_t ratchet_g);
 /* the load-cell scale, counts per g x 100 (signed) */
 int32_t ctl_scale_x100(const ctl_t *c);
 /* the e-stop input opened (the glue has already disabled the drivers and stopped the step timers in its ISR):

@@ -372,23 +372,82 @@ static uint16_t EEMEM ee_boot_count;
  * boots (EEPROM), the low byte warm resets since (0 = this is a cold boot): every reset changes the value. */
 #define WARM_MAGIC 0x5752 /* "WR" */
 static struct {
-    uint16_t magic, cold, warm, check;
+    uint16_t magic, cold, warm;
+    uint16_t away; /* the warm-boot record (spec 2.7, issue 76): the controller's `away` at the reset */
+    uint16_t check;
 } warm_boot __attribute__((section(".noinit")));
+
+static uint16_t warm_check(void)
+{
+    return (uint16_t)(warm_boot.magic ^ warm_boot.cold ^ warm_boot.warm ^ warm_boot.away ^ 0xA55A);
+}
+
+/* the RAM survived the reset (not a power-on or brown-out, and the record's check holds) */
+static uint8_t warm_record_valid(void)
+{
+    return !(mcusr_at_boot & (RIGCTL_RESET_POWER_ON | RIGCTL_RESET_BROWN_OUT)) && warm_boot.magic == WARM_MAGIC &&
+           warm_boot.check == warm_check();
+}
+
+/* the controller's `away` into the record (every tick; RAM only) */
+static void warm_record_away(uint8_t away)
+{
+    if (warm_boot.away != away) {
+        warm_boot.away = away;
+        warm_boot.check = warm_check();
+    }
+}
 
 static uint16_t boot_count(void)
 {
-    uint16_t check = (uint16_t)(warm_boot.magic ^ warm_boot.cold ^ warm_boot.warm ^ 0xA55A);
-    if ((mcusr_at_boot & (RIGCTL_RESET_POWER_ON | RIGCTL_RESET_BROWN_OUT)) || warm_boot.magic != WARM_MAGIC ||
-        warm_boot.check != check) {
+    if (!warm_record_valid()) {
         warm_boot.cold = (uint16_t)(eeprom_read_word(&ee_boot_count) + 1); /* erased EEPROM 0xFFFF: first boot 0 */
         eeprom_update_word(&ee_boot_count, warm_boot.cold);
         warm_boot.warm = 0;
+        warm_boot.away = 0; /* RAM lost: a cold boot's own check decides (ctl_boot) */
         warm_boot.magic = WARM_MAGIC;
     } else {
         warm_boot.warm++;
     }
-    warm_boot.check = (uint16_t)(warm_boot.magic ^ warm_boot.cold ^ warm_boot.warm ^ 0xA55A);
+    warm_boot.check = warm_check();
     return (uint16_t)((warm_boot.cold << 8) | (warm_boot.warm & 0xFF));
+}
+
+/* the EEPROM safety record (firmware 1.5, spec 2.7): the RESET latch held across power cycles and the load ratchet
+ * (spec 2.11); written only when the controller's copy changes: at a latch and at its clearing, never per press */
+struct safety_rec_t {
+    uint16_t magic;
+    uint8_t reset_held;
+    int16_t ratchet_g;
+    uint16_t crc;
+};
+#define SAFETY_MAGIC 0x5346 /* "SF" */
+static safety_rec_t EEMEM ee_safety;
+static safety_rec_t safety_written; /* what the EEPROM holds now */
+
+static void safety_load(void)
+{
+    eeprom_read_block(&safety_written, &ee_safety, sizeof(safety_written));
+    if (safety_written.magic != SAFETY_MAGIC ||
+        safety_written.crc != rigctl_crc16((const uint8_t *)&safety_written, sizeof(safety_written) - 2)) {
+        safety_written.magic = SAFETY_MAGIC; /* none (erased, or a brown-out while writing it): nothing held */
+        safety_written.reset_held = 0;
+        safety_written.ratchet_g = 0;
+        safety_written.crc = 0; /* never matches: the first change writes a whole record */
+    }
+}
+
+static void safety_save(void)
+{
+    if (ctl.ee_reset_held == safety_written.reset_held && ctl.ee_ratchet_g == safety_written.ratchet_g &&
+        safety_written.crc == rigctl_crc16((const uint8_t *)&safety_written, sizeof(safety_written) - 2))
+        return;
+    if (!safety_written.crc && !ctl.ee_reset_held && !ctl.ee_ratchet_g) return; /* none stored, none to store */
+    safety_written.magic = SAFETY_MAGIC;
+    safety_written.reset_held = ctl.ee_reset_held;
+    safety_written.ratchet_g = ctl.ee_ratchet_g;
+    safety_written.crc = rigctl_crc16((const uint8_t *)&safety_written, sizeof(safety_written) - 2);
+    eeprom_update_block(&safety_written, &ee_safety, sizeof(safety_written));
 }
 
 /* returns 1 if a valid record was found; else scale and steps are 0 (the controller's defaults); *zero is the stored
@@ -609,7 +668,10 @@ void setup(void)
     ctl.zero_raw = zero;
     ctl.zero_valid = calib_ok && zero != CALIB_NO_ZERO;
     ctl.reset_cause = reset_cause();
+    uint8_t warm = warm_record_valid(), was_away = warm && warm_boot.away;
     ctl.boot_count = boot_count();
+    safety_load();
+    ctl_boot(&ctl, warm, was_away, safety_written.reset_held, safety_written.ratchet_g);
     ctl_bind_modbus(&ctl, &mb);
 
     /* pins */
@@ -706,6 +768,7 @@ void loop(void)
         if (estop_latched && !(ctl.faults & RIGCTL_FAULT_ESTOP) && !ctl.estop_release) ctl_estop(&ctl);
         ctl.drum_actual_mm_s = drum_actual_mm_s();
         ctl_tick(&ctl, done_ms);
+        warm_record_away(ctl.away);
         if (ctl.zero_position) {
             /* home found: the actuator stops at the switch at once (its step timer stopped with the zero, in one
              * critical section: a step left to the next compare interrupt, or one that came between the zero and
@@ -751,6 +814,7 @@ void loop(void)
         calib_save();
         ctl.save_calibration = 0;
     }
+    safety_save(); /* the safety record, when the controller's copy changed (a latch, its clearing) */
 
     /* nothing left to do until an interrupt: idle sleep (ATmega2560 datasheet 11.2: the CPU stops, the timers, the
      * UARTs and the external interrupts run on, and any enabled interrupt wakes it, 5 cycles later than an awake CPU
