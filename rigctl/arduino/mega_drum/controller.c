@@ -330,11 +330,15 @@ static void boot_load_check(ctl_t *c, int32_t raw)
 }
 
 /* the warm-boot record: away from the moment the actuator may move towards the sensor (the force loop, HOME) until it
- * is proven back at home (homed, at rest, its step count at home or behind) or CLEAR_FAULT */
+ * is proven back at home (homed, at rest, its step count at home or behind, or the switch closed with the count
+ * within AWAY_HOME_UM of home: a back-off ends at the switch a few steps short of the count's zero) or CLEAR_FAULT */
+#define AWAY_HOME_UM 100.0f
 static void away_watch(ctl_t *c)
 {
     if (c->act_mode == ACT_MODE_FORCE || c->act_mode == ACT_MODE_HOMING) c->away = 1;
-    else if (c->homed && c->act_mode == ACT_MODE_HOLD && c->act_pos_steps <= 0) c->away = 0;
+    else if (c->homed && c->act_mode == ACT_MODE_HOLD &&
+             (c->act_pos_steps <= 0 || (c->home_switch && act_pos_mm(c) * 1000.0f <= AWAY_HOME_UM)))
+        c->away = 0;
 }
 
 static void reset_latch_clear(ctl_t *c)
