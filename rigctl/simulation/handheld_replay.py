@@ -11,12 +11,15 @@ take it as they took the live scan, so a replay gives the live run's end-of-scan
 frames, the same velocity samples at the same times; ``tests/acquisition/test_handheld_replay.py``).
 
 Which recorded scan answers a cue: the one with the cue's trial id when it is of the cue's plate and profile (the
-same protocol replayed), else the first not yet replayed of that plate and profile, in plan order.
+same protocol replayed), else the first not yet replayed of that plate and profile, in plan order. Only the scans the
+one trial validator passes are replayed (:func:`rigctl.storage.validate.usable_trials`: an excluded one, an edit after
+the seal, is warned of (``TrialsExcluded``) and never replayed).
 """
 
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -28,6 +31,7 @@ from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
 from rigctl.core.trial import PlannedTrial, TrialData
 from rigctl.storage.session import open_session
+from rigctl.storage.validate import TrialsExcluded, usable_trials
 
 __all__ = ["SessionScans"]
 
@@ -72,7 +76,10 @@ class SessionScans:
         self.layout: SensorLayout = s.layout
         self.textures: TextureSet = s.textures
         rows = {int(r["trial_id"]): r for r in s.plan}
-        self._scans = [(tid, str(rows[tid]["texture"]), str(rows[tid]["profile"])) for tid in s.completed_ids()
+        report = usable_trials(s)  # the one trial validator: a damaged scan is never replayed
+        if report.excluded:
+            warnings.warn(f"{self.path}: {report.summary()}", TrialsExcluded, stacklevel=2)
+        self._scans = [(tid, str(rows[tid]["texture"]), str(rows[tid]["profile"])) for tid in report.ids
                        if s.trial_attrs(tid).get("boundary") == "position"]
         if not self._scans:
             s.close()

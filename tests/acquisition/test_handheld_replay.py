@@ -122,3 +122,31 @@ def test_the_live_block_names_its_features_and_warns_of_a_shifted_session(traine
     assert lines[-1] == f"  WARNING: {note}" and "features: none" in lines[0]
     fake.model.alignment_note = ""
     assert not any("WARNING" in line for line in _prediction_lines(fake, tmp / "x.h5", None))
+
+
+def test_a_tampered_scan_is_never_replayed(trained, tmp_path):
+    """The replay source reads the session's scans through the one trial validator (issue 77 item 7: it took every
+    complete trial): a scan whose taxels were edited after the seal (plain h5py) is warned of and left out; the others
+    are replayed."""
+    import shutil
+
+    import h5py
+
+    from rigctl.simulation.handheld_replay import SessionScans
+    from rigctl.storage.validate import TrialsExcluded
+
+    tmp, _ = trained
+    path = tmp_path / "cal.h5"
+    shutil.copy(tmp / "cal.h5", path)
+    whole = SessionScans(tmp / "cal.h5")
+    ids = [tid for tid, _, _ in whole._scans]
+    whole.close()
+    assert len(ids) >= 2
+    with h5py.File(path, "r+") as f:  # the second scan: one reading changed by one count
+        idx = f["recording/index"][()]
+        t = int(idx[idx["trial_id"] == ids[1]][0]["sample_start"]) + 5
+        f["recording/taxels"][t, 0] = int(f["recording/taxels"][t, 0]) + 1
+    with pytest.warns(TrialsExcluded, match="1 excluded"):
+        scans = SessionScans(path)
+    assert [tid for tid, _, _ in scans._scans] == [tid for tid in ids if tid != ids[1]]
+    scans.close()
