@@ -332,3 +332,26 @@ def test_default_or_corrupt_calibration_refuses_press(bench):
     home(b.drum)
     with pytest.raises(DrumError):
         b.drum.press()
+
+
+def test_switch_stuck_closed_repeated_resets_add_no_load(bench):
+    """Issue 75's load ratchet across resets (firmware 1.5), under simavr: the home switch stuck closed and the
+    controller reset under 1000 g (1 kg/mm, 80 SPS), then HOME, reset, HOME ... four times, each reset latched by the
+    controller (RESET) and acknowledged. The first HOME's leave creeps off the "closed" switch into the sensor until
+    its load watch latches ACTUATOR_DIRECTION; that load is kept in EEPROM, and every later HOME stops where it stands
+    (HOME_NOT_FOUND): the true force no higher than after the first (firmware 1.4: one creep's rise more per reset,
+    the step count's ratchet being lost with each)."""
+    b = bench(sps=80, k=1000.0)
+    home(b.drum)
+    b.press_settled(1000)
+    b.inject("home-switch=closed@0")
+    peaks = []
+    for attempt in range(4):
+        b.reset_under_load()  # the failed HOME left the actuator away from home: RESET again, acknowledged
+        b.drum.home()
+        st = b.wait(lambda s: s.state != State.HOMING, 60)
+        assert st.state == State.FAULT and not st.homed, st
+        assert st.faults == (Fault.HOME_NOT_FOUND if attempt else Fault.ACTUATOR_DIRECTION), (attempt, st)
+        peaks.append(b.peak_g())
+    assert peaks[-1] <= peaks[0] + 10.0, peaks
+    assert peaks[-1] <= BOUND_G, peaks
