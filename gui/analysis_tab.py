@@ -80,6 +80,7 @@ class AnalysisTab(StagedWidget, QtWidgets.QWidget):
         self.job = None
         self._job_kind = ""
         self._trial_job: Job | None = None
+        self._verdict_job: Job | None = None  # the trial validator's verdicts on the open session (off this thread)
         self._wanted_tid: int | None = None  # the selected trial: the plot follows it (rapid browsing)
         self.shown_tid: int | None = None  # the trial the plots show
         self._session_range = None
@@ -416,7 +417,22 @@ class AnalysisTab(StagedWidget, QtWidgets.QWidget):
         self.file_label.setText(f"<b>{os.path.basename(path)}</b> ({kind}, {len(rows)} trials; sensor "
                                 f"{layout.shape_text}, {layout.n_channels} taxels, {layout.sample_rate_hz:g} Hz)")
         self.status.setText("select a trial to see it; Encode / Run analyses for the paper's results")
+        self._verdict_job = _verdicts_job(path) if kind == "session" else None
         self._update_buttons()
+
+    def _show_verdicts(self, job: Job) -> None:
+        """The trial validator's verdicts (:func:`_verdicts_job`) in the table: an excluded trial's status reads
+        ``excluded``, its reason in the cell's tooltip; nothing when the session was closed or another opened."""
+        self._verdict_job = None
+        if job.error or job.path != self.path:
+            return
+        cells = ((r, self.trials.item(r, 0)) for r in range(self.trials.rowCount()))
+        rows = {int(item.text()): r for r, item in cells if item is not None}
+        for tid, why in job.result.items():
+            if tid in rows:
+                item = QtWidgets.QTableWidgetItem("excluded")
+                item.setToolTip(f"trial {tid} is excluded: {why}")
+                self.trials.setItem(rows[tid], 4, item)
 
     def _trial_rows(self) -> tuple[list[tuple], SensorLayout]:
         """Table rows (trial, texture, speed, force, status) and the file's sensor layout (a file is open)."""
@@ -660,6 +676,9 @@ class AnalysisTab(StagedWidget, QtWidgets.QWidget):
         is reported in the status line, not raised into the event loop."""
         if self.building:  # (a staged build: nothing to pull yet)
             return
+        vj = self._verdict_job
+        if vj is not None and vj.done:
+            self._show_verdicts(vj)
         tj = self._trial_job
         if tj is not None and tj.done:
             try:
@@ -995,6 +1014,23 @@ def _two_lines(text: str, longest: int) -> str:
         return text
     head, _, tail = text.rpartition(" ")
     return f"{head}\n{tail}"
+
+
+def _verdicts_job(path: str) -> Job:
+    """A started job whose result is the trial validator's excluded trials of session ``path`` (id -> reason,
+    :func:`rigctl.storage.validate.usable_trials`, the check every command makes): it reads the session, so not on
+    the GUI thread."""
+    def work(_job: Job) -> dict[int, str]:
+        from rigctl.storage.session import open_session
+        from rigctl.storage.validate import usable_trials
+
+        with open_session(path) as s:
+            return dict(usable_trials(s).excluded)
+
+    job = Job(work, name="verdicts")
+    job.path = path
+    job.start()
+    return job
 
 
 def _source_readings(encoded_path: str, tid: int) -> tuple[np.ndarray | None, str]:

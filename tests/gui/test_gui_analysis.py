@@ -646,9 +646,10 @@ def test_a_stage_that_counts_nothing_is_busy_not_100_percent():
 
 def test_a_tampered_trial_is_not_shown_by_the_trial_view(lone_tab, qapp, tmp_path):
     """The trial view reads a session's trial through storage's one validator (issue 77 item 7: "one validator for
-    every command"): a trial whose taxels were edited after rigctl sealed them (a plain h5py edit) is not drawn,
-    the window gives the validator's reason, and the view shows no other trial in its place; its neighbours are
-    drawn. Before, the view drew the edited readings as the trial's."""
+    every command"): a trial whose taxels were edited after rigctl sealed them (a plain h5py edit) is marked
+    excluded in the table, is not drawn, the window gives the validator's reason, and the view shows no other trial
+    in its place; its neighbours are drawn. Before, the table said complete and the view drew the edited readings
+    as the trial's."""
     import h5py
 
     from rigctl.core import SensorLayout
@@ -661,6 +662,10 @@ def test_a_tampered_trial_is_not_shown_by_the_trial_view(lone_tab, qapp, tmp_pat
         f["recording/taxels"][t, 3] = int(f["recording/taxels"][t, 3]) + 1
     tab = lone_tab
     tab.open(str(path))
+    # the table gives the validator's verdict, found off the GUI thread: trial 6 excluded, its reason in the tooltip
+    assert wait_for(qapp, lambda: tab.trials.item(6, 4).text() == "excluded", 60), tab.trials.item(6, 4).text()
+    assert "differ from the checksum sealed" in tab.trials.item(6, 4).toolTip()
+    assert [tab.trials.item(r, 4).text() for r in range(16) if r != 6] == ["complete"] * 15
     tab.trials.selectRow(5)
     assert wait_for(qapp, lambda: tab._trial_job is None and tab.shown_tid == 5, 60), tab.status.text()
     assert len(tab.trial_curves[0].getData()[0]) == 100
