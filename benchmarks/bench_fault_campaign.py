@@ -202,6 +202,7 @@ class AdviceWalk:
         self.force_g = float(case.forces_g[1])
         self.steps: list[str] = []
         self.watch = False  # the lead screw to be watched at the next start (ACTUATOR_DIRECTION's advice)
+        self.recalibrate = False  # the load cell to be recalibrated with the reference mass (LOADCELL_SCALE's advice)
         #: the parts the walk left wired the wrong way that were right when it began (a coil pair or A+/A- swapped on
         #: a part that was not the fault): advice worse than the fault
         self.miswired: list[str] = []
@@ -236,6 +237,10 @@ class AdviceWalk:
             elif "by hand" in advice and "swap A+ and A-" in advice:  # LOADCELL_REVERSED: "If they all fall ... swap"
                 if self._hand_presses(bit.name, done) == "rise":
                     done[-1] += ", changed no wire (recalibration asked)"
+            elif "recalibrate with the reference mass" in advice:
+                self.recalibrate = True
+                done.append(f"{bit.name}: checked the cell, found nothing; recalibration with the reference mass "
+                            "after the acknowledgement")
             elif "lower the force setpoint" in advice:
                 self.force_g = max(100.0, 0.8 * self.force_g)
                 done.append(f"{bit.name}: setpoint lowered to {self.force_g:.0f} g")
@@ -283,6 +288,23 @@ class AdviceWalk:
             return "saw the screw close the gap: swapped a coil pair of the actuator"
         return "saw the screw turn the right way: changed no wire"
 
+    def recalibrate_with_the_reference_mass(self) -> str:
+        """LOADCELL_SCALE's advice: the load cell calibrated with the 500 g reference mass (HOME first), which stores
+        the contact's stiffness with the verified scale (:func:`rigctl.acquisition.calibration.calibrate_loadcell`;
+        the model rig rests the mass itself)."""
+        from rigctl.acquisition import calibration
+
+        self.recalibrate = False
+        try:
+            self.rig.home_if_pending()
+            place, remove = calibration.simulated_mass(self.rig)
+            result = calibration.calibrate_loadcell(self.rig.drum, 500.0, place_mass=place, remove_mass=remove,
+                                                    config_file=False)
+        except Exception as exc:  # noqa: BLE001 - the operator's calibration ended: the next start says what holds
+            return f"recalibration ended: {type(exc).__name__}"
+        return (f"recalibrated with the 500 g reference mass: {result.counts_per_g:.1f} counts/g, "
+                f"{result.contact_stiffness_g_per_mm:.0f} g/mm stored")
+
     def run(self) -> None:
         """The rounds; :attr:`miswired` set at the end."""
         model = self.rig.backend.engine.model
@@ -313,6 +335,8 @@ class AdviceWalk:
                 self.script.hold(0.5)
                 continue
             self.steps.append("acknowledged")
+            if self.recalibrate:
+                self.steps.append(self.recalibrate_with_the_reference_mass())
             try:
                 rig.press(self.force_g, timeout_s=10.0)
                 self.script.hold(1.0)

@@ -327,20 +327,6 @@ def test_the_press_direction_watch_constants(spec_text, h):
         assert h[f"RIGCTL_PRESS_DIR_{name}"] == getattr(wire, f"PRESS_DIR_{name}") == value, name
 
 
-def test_the_back_off_proof_constants(spec_text, h):
-    """Spec 2.11's back-off proof: the same step, force and number of steps in the text, the header and wire.py (the
-    firmware uses them; the campaign's step-after-latch judge allows their blind travel, no more)."""
-    m = re.search(r"proof steps of at most (\d+) um \(BACKOFF_PROOF_UM\) and (\d+) g.*?\(BACKOFF_PROOF_G\).*?At most\s+"
-                  r"(\d+) proof steps \(BACKOFF_PROOF_TRIES\).*?at most (\d+) um", spec_text, re.S)
-    assert m is not None
-    step_um, force_g, tries, blind_um = map(int, m.groups())
-    for name, value in (("UM", step_um), ("G", force_g), ("TRIES", tries)):
-        assert h[f"RIGCTL_BACKOFF_PROOF_{name}"] == getattr(wire, f"BACKOFF_PROOF_{name}") == value, name
-    assert blind_um == tries * step_um
-    from rigctl.simulation.campaign import LATCH_PROOF_MM
-    assert LATCH_PROOF_MM == pytest.approx(blind_um * 1e-3)
-
-
 @pytest.mark.parametrize("table,flags,prefix", [
     ("reset-cause", wire.ResetCause, "RIGCTL_RESET_"),
     ("status-flags", wire.StatusFlag, "RIGCTL_STATUS_"),
@@ -362,6 +348,12 @@ def test_signed_loadcell_scale(spec_text, h):
     for v in (42000, -42000, 430000, -1, 0, 2**31 - 1, -2**31):
         assert wire.join_s32(*wire.split_s32(v)) == v
     assert wire.split_s32(-42000) == (0xFFFF, (-42000) & 0xFFFF)
+
+
+def test_the_scale_check_tolerance(spec_text, h):
+    pct = int(re.search(r"\(SCALE_CHECK_PCT = (\d+):", spec_text).group(1))
+    assert pct == h["RIGCTL_SCALE_CHECK_PCT"] == wire.SCALE_CHECK_PCT
+    assert f"more than {pct} % (SCALE_CHECK_PCT) off" in spec_text
 
 
 def test_hx711_rate_rules(spec_text, h):

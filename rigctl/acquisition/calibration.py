@@ -43,7 +43,7 @@ from rigctl.acquisition.rigconfig import (  # noqa: F401 (re-exported: the confi
     save_rig_config,
     update_rig_config,
 )
-from rigctl.core.drum import SetpointRangeError
+from rigctl.core.drum import SCALE_CHECK_PCT, Fault, SetpointRangeError
 from rigctl.core.interfaces import DrumController, DrumMonitor, MassPlacer
 from rigctl.core.normalisation import TaxelRange
 
@@ -65,6 +65,8 @@ class LoadCellCalibration:
     check_force_g : float, the controller's FORCE_G reading with the mass after the new scale (should be ~mass_g)
     noise_counts : float, sd of the raw readings without the mass
     calibrated_utc : str
+    contact_stiffness_g_per_mm : float, the contact's stiffness the probe measured with the verified scale and stored
+        with the calibration (CALIBRATION_STIFFNESS_G_PER_MM, spec 2.12); 0: not measured (the stored one kept)
     """
 
     counts_per_g: float
@@ -75,9 +77,26 @@ class LoadCellCalibration:
     check_force_g: float
     noise_counts: float
     calibrated_utc: str
+    contact_stiffness_g_per_mm: float = 0.0
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+#: the press whose probe measures the contact's stiffness at calibration, g (the probe itself presses 50 g + 100 g;
+#: a setpoint above that lets the probe finish: docs/wire-protocol.md 2.10-2.12)
+CONTACT_PRESS_G = 300.0
+
+
+def _clear_the_masss_own_trip(drum: DrumController, faults_before: Fault) -> None:
+    """The reference mass read on the old scale may have tripped FORCE_LIMIT (a cell of another range: 500 g read as
+    2,500 g) with the actuator at home; that latch, the calibration's own doing and nothing else, is cleared (logged)
+    before the contact is pressed. Any other fault stays (the press is then refused: DrumError)."""
+    st = drum.read_status()
+    if st.faults == Fault.FORCE_LIMIT and not faults_before and abs(st.force_g) < 2 * drum.settle_band().force_tolerance_g:
+        log.warning("the %s read on the old scale latched FORCE_LIMIT with the actuator home: cleared, the new scale "
+                    "reads %.0f g now", "calibration mass", st.force_g)
+        drum.clear_fault()
 
 
 def _sleep(drum, s: float) -> None:
@@ -108,6 +127,7 @@ def calibrate_loadcell(
     save: bool = True,
     config_file: str | os.PathLike | Literal[False] | None = None,
     allow_negative: bool = False,
+    contact_press_g: float | None = CONTACT_PRESS_G,
 ) -> LoadCellCalibration:
     """Calibrate the load cell with a known mass and write the scale to the drum controller.
 
@@ -115,7 +135,9 @@ def calibrate_loadcell(
     without the mass; ``place_mass(mass_g)`` (the operator puts the mass on the load cell; in simulation the
     simulated rig adds it); mean raw counts with it; ``counts_per_g = (loaded - zero) / mass_g``;
     ``set_loadcell_scale(counts_per_g)`` (LOADCELL_SCALE_X100) and SAVE_CALIBRATION (EEPROM) when ``save``;
-    read FORCE_G with the mass as a check; ``remove_mass(mass_g)``.
+    read FORCE_G with the mass as a check; ``remove_mass(mass_g)``; then the contact's stiffness
+    (:func:`store_contact_stiffness`): a press of ``contact_press_g`` on the mounted plate, its probe's stiffness
+    measured with the verified scale, stored with the calibration (spec 2.12), SAVE_CALIBRATION.
 
     Parameters
     ----------
@@ -130,6 +152,9 @@ def calibrate_loadcell(
         False = do not store
     allow_negative : calibrate a cell that reads negative under the mass with a negative scale (else that is an
         error naming the reversed cell)
+    contact_press_g : the press (g) whose probe measures the contact's stiffness with the verified scale, stored for
+        the scale check of every later probe (spec 2.12; the controller must be homed, the plate mounted); None: the
+        scale only, the stiffness stored before is kept
 
     Returns
     -------
@@ -143,6 +168,7 @@ def calibrate_loadcell(
     if not mass_g > 0:
         raise ValueError(f"mass_g must be > 0, got {mass_g}")
     wait_released(drum, timeout_s=30.0)
+    faults_before = drum.read_status().faults
     _sleep(drum, settle_s)  # a load just taken off (a mass, a retract): the HX711 settles first, or the tare keeps it
     drum.tare()
     _sleep(drum, settle_s)
@@ -168,20 +194,65 @@ def calibrate_loadcell(
         except SetpointRangeError as exc:
             raise CalibrationError(f"{counts_per_g:.3f} counts/g is outside what the controller's load-cell scale "
                                    f"holds ({exc.low:g}-{exc.high:g} counts/g, either sign)") from None
-        if save:
+        if save and contact_press_g is None:
             drum.save_calibration()
         _sleep(drum, settle_s)
         _, _, check = _mean_raw(drum, max(5, n_readings // 2), interval_s)
     finally:
         if remove_mass is not None:
             remove_mass(mass_g)
+    stiffness = 0.0
+    if contact_press_g is not None:
+        _sleep(drum, settle_s)  # the mass just taken off: the HX711 settles before the probe reads the contact
+        _clear_the_masss_own_trip(drum, faults_before)
+        stiffness = store_contact_stiffness(drum, contact_press_g, save=save)
     result = LoadCellCalibration(
         counts_per_g=float(counts_per_g), scale_x100=scale_x100, mass_g=float(mass_g), zero_raw=zero,
         loaded_raw=loaded, check_force_g=check, noise_counts=noise, calibrated_utc=_utc_now(),
+        contact_stiffness_g_per_mm=float(stiffness),
     )
     if config_file is not False:
         update_rig_config(config_file, loadcell=result.to_dict())
     return result
+
+
+def store_contact_stiffness(drum: DrumController, press_g: float = CONTACT_PRESS_G, *, save: bool = True,
+                            timeout_s: float = 60.0) -> float:
+    """Measure the contact's stiffness with the scale in force and store it with the calibration (spec 2.12): only
+    right after the scale was verified with a reference mass (:func:`calibrate_loadcell`), since every later probe is
+    checked against it.
+
+    The stored stiffness is cleared (no check against a contact measured with a scale that may have been wrong), a
+    press of ``press_g`` (g) on the mounted plate probes it (CONTACT_STIFFNESS_G_PER_MM), the actuator is released,
+    and the stiffness is written to CALIBRATION_STIFFNESS_G_PER_MM and, when ``save``, SAVE_CALIBRATION. One that
+    differs from the one stored before by more than the check's tolerance is logged (the old scale or the contact
+    was off). Returns g/mm.
+
+    Raises CalibrationError (no stiffness measured: nothing stored), DrumError (not homed, a fault: the stored one
+    restored)."""
+    stored = drum.calibration_stiffness()
+    drum.set_calibration_stiffness(0)
+    try:
+        drum.set_force(press_g)
+        drum.press()
+        drum.wait_force_settled(timeout_s=timeout_s)
+        measured = float(drum.read_status().contact_stiffness_g_per_mm)
+    except BaseException:
+        drum.set_calibration_stiffness(stored)  # not measured: the check as it was (a latch stays for the operator)
+        raise
+    wait_released(drum, timeout_s=timeout_s)
+    if not measured > 0:
+        drum.set_calibration_stiffness(stored)
+        raise CalibrationError("the press measured no contact stiffness: not stored")
+    tol = 1.0 + SCALE_CHECK_PCT / 100.0
+    if stored and not 1.0 / tol <= measured / stored <= tol:
+        log.warning("the contact's stiffness stored with the calibration changes from %d to %.0f g/mm: the scale "
+                    "calibrated before, or the contact (sensor, mount, plate material), was not the same", stored,
+                    measured)
+    drum.set_calibration_stiffness(measured)
+    if save:
+        drum.save_calibration()
+    return measured
 
 
 def simulated_mass(rig) -> tuple[Callable[[float], Any], Callable[[float], Any]]:

@@ -10,7 +10,9 @@ optional blocks
 
 - ``loadcell``: ``counts_per_g`` (required, a non-zero number: negative for a cell calibrated as reversed),
   ``scale_x100`` (a non-zero integer of absolute value up to 10,000,000: the controller's signed scale), ``mass_g`` (> 0),
-  ``zero_raw``, ``loaded_raw``, ``check_force_g``, ``noise_counts`` (numbers), ``calibrated_utc`` (text);
+  ``zero_raw``, ``loaded_raw``, ``check_force_g``, ``noise_counts``, ``contact_stiffness_g_per_mm`` (numbers: the
+  contact's stiffness the probe measured with the verified scale, stored with the controller's calibration too,
+  docs/wire-protocol.md 2.12), ``calibrated_utc`` (text);
 - ``taxel_normalisation``: ``taxel_min``, ``taxel_max`` (required, lists of ADC counts, one per taxel, of the same
   non-zero length, min <= max), ``n_trials`` (an integer >= 0), ``source``, ``calibrated_utc`` (text);
 - ``force_loop``: the force loop's settings for this rig's contact stiffness and HX711 (all required):
@@ -70,6 +72,7 @@ SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
         "counts_per_g": ("nonzero", True), "scale_x100": ("scale", False), "mass_g": ("positive", False),
         "zero_raw": ("number", False), "loaded_raw": ("number", False), "check_force_g": ("number", False),
         "noise_counts": ("number", False), "calibrated_utc": ("text", False),
+        "contact_stiffness_g_per_mm": ("number", False),
     },
     "taxel_normalisation": {
         "taxel_min": ("counts", True), "taxel_max": ("counts", True), "n_trials": ("count", False),

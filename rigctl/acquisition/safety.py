@@ -87,6 +87,8 @@ CAUSES: dict[str, tuple[str, str]] = {
     "hx711-cadence": ("load-cell readings too fast", "check the HX711's SCK and DOUT wires" + _CRUSH),
     "contact-lost": ("contact lost while the force held", "check the load cell and the HX711: the reading did not "
                                                           "follow the contact" + _CRUSH),
+    "loadcell-scale": ("the reading's scale disagrees with the stiffness stored at calibration",
+                       "check the cell and recalibrate with the reference mass (rigctl calibrate loadcell)" + _CRUSH),
 }
 
 #: the cause of each controller fault bit (the first that is set names the latch)
@@ -97,7 +99,7 @@ _FAULT_CAUSES: tuple[tuple[Fault, str], ...] = (
     (Fault.HOME_NOT_FOUND, "home-failed"), (Fault.HX711_RATE, "hx711-rate"),
     (Fault.DRUM_SLIP, "stall"), (Fault.CONTACT_STIFFNESS, "contact-stiffness"), (Fault.HX711_LINE, "hx711-line"),
     (Fault.HX711_CADENCE, "hx711-cadence"), (Fault.HX711_STUCK, "hx711-stuck"), (Fault.POSITION_LIMIT, "position-limit"),
-    (Fault.CONTACT_LOST, "contact-lost"), (Fault.RESET, "reset"),
+    (Fault.CONTACT_LOST, "contact-lost"), (Fault.RESET, "reset"), (Fault.LOADCELL_SCALE, "loadcell-scale"),
 )
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 from pathlib import Path
 
 import click
@@ -111,8 +112,10 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
 
         acknowledge = (ack.strip(), operator_name())
     lines = _SkipFolder(click.echo)
+    # on hardware the operator puts the reference mass on the cell when asked (a terminal only: a script skips it)
+    place_mass = _ask_operator if source.kind == "hardware" and sys.stdin.isatty() else None
     report = run(source, checks=checks or None, host_config_path=config_path, seed=seed, rest_s=rest_s,
-                 save=save, on_result=None if as_json else lines.add, acknowledge=acknowledge)
+                 save=save, on_result=None if as_json else lines.add, acknowledge=acknowledge, place_mass=place_mass)
     lines.flush()
     if as_json:
         click.echo(json.dumps(report.to_dict(), indent=2))
@@ -125,6 +128,13 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
         click.echo(f"not checked: {', '.join(r.name for r in not_run)} could not run (exit 1)", err=True)
     if not report.ok or not_run:
         raise SystemExit(1)
+
+
+def _ask_operator(mass_g: float) -> None:
+    """The reference-mass check's operator: puts ``mass_g`` grams on the load cell (0: takes it off), Enter when done."""
+    click.prompt(f"put the {mass_g:g} g reference mass on the load cell, then press Enter" if mass_g
+                 else "take the reference mass off the load cell, then press Enter", default="", show_default=False,
+                 err=True)
 
 
 class _SkipFolder:

@@ -86,6 +86,12 @@ class Fault(enum.IntFlag):
     HX711_CADENCE = 1 << 14
     CONTACT_LOST = 1 << 15
     RESET = 1 << 16  # FAULT_BITS_HI bit 0 (firmware 1.5)
+    LOADCELL_SCALE = 1 << 17  # FAULT_BITS_HI bit 1 (firmware 1.6)
+
+
+#: the reading's scale check (docs/wire-protocol.md 2.12): the probe's stiffness over the one stored with the
+#: calibration must lie within 100 / (100 + SCALE_CHECK_PCT) .. (100 + SCALE_CHECK_PCT) / 100, else LOADCELL_SCALE
+SCALE_CHECK_PCT = 15
 
 
 class ResetCause(enum.IntFlag):
@@ -184,7 +190,8 @@ ACTUATOR_DIRECTION_CAUSES = (
 #: stiffer than the loop holds). Opening the rig never clears one: the operator acknowledges it with a reason once the
 #: cause is fixed (:func:`fault_advice` says so). A fault bit added for a lying reading belongs here too
 CRUSH_FAULTS = (Fault.FORCE_LIMIT | Fault.LOADCELL_REVERSED | Fault.ACTUATOR_DIRECTION | Fault.CONTACT_STIFFNESS
-                | Fault.POSITION_LIMIT | Fault.HX711_STUCK | Fault.HX711_LINE | Fault.HX711_CADENCE | Fault.CONTACT_LOST)
+                | Fault.POSITION_LIMIT | Fault.HX711_STUCK | Fault.HX711_LINE | Fault.HX711_CADENCE | Fault.CONTACT_LOST
+                | Fault.LOADCELL_SCALE)
 
 #: what :func:`fault_advice` adds to a crush-class fault
 CRUSH_NOTE = ("a crush-class fault: opening the rig never clears it; acknowledge it with a reason once the cause is "
@@ -301,6 +308,16 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "may have been pressing: it latched this itself, so every program that opens the rig finds it, and it moves "
         "nothing. Check the controller's power and reset line and that nothing presses the sensor, then CLEAR_FAULT; "
         "the start after it HOMEs from an unknown position (creeping, its way proven)."),
+    Fault.LOADCELL_SCALE: FaultWords(
+        "load-cell scale disagrees with the calibration",
+        "the contact's stiffness the press's probe measured disagrees with the one stored with the calibration by "
+        "more than SCALE_CHECK_PCT: the reading's scale is wrong",
+        "the reading's scale disagrees with the stiffness stored at calibration: the probe measured the contact "
+        "through the load cell at a stiffness more than 15 % off the one stored when the scale was verified, so the "
+        "reading (and the force limit) is off by as much. It backed off before pressing. Check the cell and recalibrate "
+        "with the reference mass (rigctl calibrate loadcell, which stores the contact's stiffness again); if the "
+        "sensor, its mount or a plate of another material was changed since, that recalibration stores the new "
+        "contact. Then CLEAR_FAULT."),
 }
 
 

@@ -164,8 +164,19 @@ class DrumCalibration(Protocol):
         """The controller's load-cell scale now, HX711 counts per g (signed)."""
         ...
 
+    def calibration_stiffness(self) -> int:
+        """The contact's stiffness stored with the calibration, g/mm (0: none stored; spec 2.12: every probe's
+        stiffness is checked against it)."""
+        ...
+
+    def set_calibration_stiffness(self, g_per_mm: float) -> None:
+        """Set the contact's stiffness stored with the calibration, g/mm (0-5000; 0: none, no check);
+        :meth:`save_calibration` keeps it."""
+        ...
+
     def save_calibration(self) -> None:
-        """Write the calibration (load-cell scale, actuator steps per mm) to the controller's EEPROM."""
+        """Write the calibration (load-cell scale, actuator steps per mm, the contact's stiffness) to the
+        controller's EEPROM."""
         ...
 
 

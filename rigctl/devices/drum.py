@@ -788,6 +788,19 @@ class DrumClient:
         """The controller's load-cell scale, HX711 counts per g (signed)."""
         return wire.join_s32(*self.read_holdings(HR.LOADCELL_SCALE_X100_HI, 2)) / 100.0
 
+    def calibration_stiffness(self) -> int:
+        """The contact's stiffness stored with the calibration, g/mm (CALIBRATION_STIFFNESS_G_PER_MM; 0: none)."""
+        return self.read_holding(HR.CALIBRATION_STIFFNESS_G_PER_MM)
+
+    def set_calibration_stiffness(self, g_per_mm: float) -> None:
+        """Write CALIBRATION_STIFFNESS_G_PER_MM (g/mm, 0-5000; 0: none, no check; spec 2.12); SAVE_CALIBRATION
+        keeps it in EEPROM. SetpointRangeError outside its range."""
+        lo, hi, _ = wire.holding_range(HR.CALIBRATION_STIFFNESS_G_PER_MM)
+        v = float(g_per_mm)
+        if not (math.isfinite(v) and lo <= v <= hi):
+            raise SetpointRangeError("contact stiffness stored with the calibration", v, "g/mm", lo, hi)
+        self.write_holding(HR.CALIBRATION_STIFFNESS_G_PER_MM, int(round(v)))
+
     def force_loop(self) -> ForceLoopConfig:
         """The force loop's rate and gains (holding registers 20-24, spec 2.9)."""
         return force_loop_from_registers(self.read_holdings(HR.HX711_RATE_SPS, len(FORCE_LOOP_REGISTERS)))

@@ -19,6 +19,7 @@ import numpy as np
 # (the numbers of spec tables 2.4 and 2.5, checked here by tests/test_wire_spec.py); re-exported as the spec's names
 from rigctl.core.drum import (
     CONTACT_STIFFNESS_MAX_G_PER_MM as CONTACT_STIFFNESS_MAX_G_PER_MM,
+    SCALE_CHECK_PCT as SCALE_CHECK_PCT,
     DrumState as DrumState,
     Fault as Fault,
     ResetCause as ResetCause,
@@ -152,7 +153,7 @@ UNO_FIRMWARE_VERSION = (1, 0)
 # --------------------------------------------------------------------------------------------------------------
 DRUM_BAUD = 500_000
 DRUM_DEVICE_ID = 1
-MEGA_FIRMWARE_VERSION = (1, 5)
+MEGA_FIRMWARE_VERSION = (1, 6)
 
 
 class HoldingRegister(enum.IntEnum):
@@ -174,6 +175,7 @@ class HoldingRegister(enum.IntEnum):
     ACTUATOR_STEPS_PER_MM = 13
     LOADCELL_SCALE_X100_HI = 14
     LOADCELL_SCALE_X100_LO = 15
+    CALIBRATION_STIFFNESS_G_PER_MM = 16
     HX711_RATE_SPS = 20
     FORCE_KP_80SPS_NMS_G = 21
     FORCE_KI_80SPS_NMS_GS = 22
@@ -199,6 +201,7 @@ HOLDING_RANGE: dict[HoldingRegister, tuple[int, int, int]] = {
     HoldingRegister.ACTUATOR_STEPS_PER_MM: (1, 65535, 400),
     HoldingRegister.LOADCELL_SCALE_X100_HI: (0, 65535, 0),
     HoldingRegister.LOADCELL_SCALE_X100_LO: (0, 65535, 42000),
+    HoldingRegister.CALIBRATION_STIFFNESS_G_PER_MM: (0, 5000, 0),
     HoldingRegister.HX711_RATE_SPS: (10, 80, 80),
     HoldingRegister.FORCE_KP_80SPS_NMS_G: (0, 20000, 10000),
     HoldingRegister.FORCE_KI_80SPS_NMS_GS: (0, 20000, 10000),
@@ -407,13 +410,6 @@ PRESS_DIR_STEPS = 16
 PRESS_DIR_PROOF_READINGS = 2
 PRESS_DIR_G = 8
 HX711_CADENCE_PCT = 50
-#: a back-off under load proves its way first (spec 2.11): steps of at most BACKOFF_PROOF_UM (and BACKOFF_PROOF_G of
-#: spring force at the contact's stiffness), each held until the HX711 settled on it, at most BACKOFF_PROOF_TRIES of
-#: them: the blind travel towards the sensor on a reversed motor is at most TRIES x UM (32 um; 160 g at the stiffest
-#: contact accepted, where the first step already shows 40 g)
-BACKOFF_PROOF_UM = 8
-BACKOFF_PROOF_G = 40
-BACKOFF_PROOF_TRIES = 4
 HOME_CREEP_UM = 12
 HOME_PROOF_FALL_G = 50
 HOME_RISE_G = 30

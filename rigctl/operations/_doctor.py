@@ -22,7 +22,8 @@ def doctor(source: RigSource | None = None, *, control: RigControl | None = None
            seed: int = 0, config: Any = None, rest_s: float = 10.0, save: bool = True,
            on_result: Callable[[_doctor.CheckResult], Any] | None = None,
            cancel: threading.Event | None = None,
-           acknowledge: tuple[str, str] | None = None) -> _doctor.DoctorReport:
+           acknowledge: tuple[str, str] | None = None,
+           place_mass: Callable[[float], Any] | None = None) -> _doctor.DoctorReport:
     """Run the doctor's checks (all, or those named in ``checks``) and store the dated report.
 
     Parameters
@@ -42,6 +43,8 @@ def doctor(source: RigSource | None = None, *, control: RigControl | None = None
         stopped safely), the rest are reported as ``skip: cancelled``.
     acknowledge : ``(reason, by)``: the operator acknowledges at open a fault the controller latches (``rigctl
         doctor --ack``; :func:`rigctl.operations.open_control`); without it such a fault is kept and reported.
+    place_mass : ``place_mass(g)`` returns once the operator has put ``g`` grams on the load cell (0: off): the
+        reference-mass check on hardware (a simulated rig places it itself); None: that check skips on hardware.
 
     Returns
     -------
@@ -54,7 +57,8 @@ def doctor(source: RigSource | None = None, *, control: RigControl | None = None
     """
     selected = _doctor.select(checks)
     if control is not None:
-        ctx = _doctor.DoctorContext(control.mode, rig=rig_of(control), config_path=host_config_path, rest_s=rest_s)
+        ctx = _doctor.DoctorContext(control.mode, rig=rig_of(control), config_path=host_config_path, rest_s=rest_s,
+                                    place_mass=place_mass)
     else:
         # the doctor reports a firmware build mismatch as its firmware-build check, so it opens the boards anyway
         source = dataclasses.replace(source or RigSource(), allow_firmware_mismatch=True)
@@ -65,7 +69,8 @@ def doctor(source: RigSource | None = None, *, control: RigControl | None = None
             return rig_of(control)
 
         ctx = _doctor.DoctorContext(source.kind, opener=opener, drum_port=source.drum_port,
-                                    taxel_port=source.taxel_port, config_path=host_config_path, rest_s=rest_s)
+                                    taxel_port=source.taxel_port, config_path=host_config_path, rest_s=rest_s,
+                                    place_mass=place_mass)
     if cancel is not None:
         ctx.cancel = cancel
     report = _doctor.run_doctor(selected, ctx, on_result=on_result)

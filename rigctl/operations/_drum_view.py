@@ -64,6 +64,10 @@ class DrumView:
         """The load cell's scale the controller holds, counts/g. DrumError."""
         return self.__drum.loadcell_scale()
 
+    def calibration_stiffness(self) -> int:
+        """The contact's stiffness stored with the controller's calibration, g/mm (0: none). DrumError."""
+        return self.__drum.calibration_stiffness()
+
     def wait_state(self, states: Iterable[DrumState], timeout_s: float) -> DrumStatus:
         """Wait for one of ``states`` (s of the rig's clock). DrumTimeout, DrumFault."""
         return self.__drum.wait_state(states, timeout_s)

@@ -51,6 +51,7 @@ from rigctl.devices.wire import DrumState, Fault, HoldingRegister as HR, ResetCa
 from rigctl.simulation import mega_c
 from rigctl.simulation.controller_eeprom import EmulatedEeprom
 from rigctl.simulation.drum_index import DrumIndex
+from rigctl.simulation.mega_eeprom import factory_stiffness
 from rigctl.simulation.model import RigModel
 
 log = logging.getLogger(__name__)
@@ -144,7 +145,12 @@ class MegaController:
         self._power_up(ResetCause.POWER_ON)
         self._boot()
         if factory_calibrated and self.eeprom.data["calibration"] is None:
-            self._save_calibration()  # the first start of an erased EEPROM: the record written, valid from now
+            # the first start of an erased EEPROM: the record written, valid from now, with the rig's own plate's
+            # stiffness (spec 2.12: measured when the scale was verified with a reference mass)
+            m = model.config.mechanics
+            self._c.hreg[HR.CALIBRATION_STIFFNESS_G_PER_MM] = factory_stiffness(m.contact_stiffness_g_per_mm,
+                                                                                m.loadcell_counts_per_g)
+            self._save_calibration()
 
     @property
     def build_id(self) -> str | None:
@@ -167,6 +173,7 @@ class MegaController:
         self._warm_boots = 0 if cold else self._warm_boots + 1
         lib.ctl_init(c, int(rec["scale_x100"]) if rec else 0, int(rec["actuator_steps_per_mm"]) if rec else 0)
         zero = rec.get("zero_raw") if rec else None
+        c.hreg[HR.CALIBRATION_STIFFNESS_G_PER_MM] = int(rec.get("stiffness_g_per_mm", 0)) if rec else 0  # spec 2.12
         c.calib_defaults = rec is None
         c.zero_raw = int(zero) if zero is not None else 0
         c.zero_valid = zero is not None
@@ -517,7 +524,8 @@ class MegaController:
         """``calib_save``: the record with the tare in force (or the zero stored before, if no tare was taken)."""
         c = self._c
         zero = c.tare_offset if c.tared else (c.zero_raw if c.zero_valid else None)
-        self.eeprom.save(self.scale_x100, int(c.hreg[HR.ACTUATOR_STEPS_PER_MM]), zero)
+        self.eeprom.save(self.scale_x100, int(c.hreg[HR.ACTUATOR_STEPS_PER_MM]), zero,
+                         int(c.hreg[HR.CALIBRATION_STIFFNESS_G_PER_MM]))
         c.zero_raw = zero if zero is not None else 0
         c.zero_valid = zero is not None
         c.calib_defaults = 0

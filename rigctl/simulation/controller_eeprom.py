@@ -28,8 +28,9 @@ class EmulatedEeprom:
     Attributes
     ----------
     data : ``{"calibration": record or None (erased), "boot_count": cold boots (0xFFFF erased), "safety": the safety
-        record or None (:attr:`safety`)}``; a calibration record is
-        ``{"scale_x100", "actuator_steps_per_mm", "zero_raw" (optional), "crc"}``.
+        record or None (:attr:`safety`)}``; a calibration record is ``{"scale_x100", "actuator_steps_per_mm",
+        "zero_raw" (optional), "stiffness_g_per_mm" (optional: the contact's stiffness stored with the calibration,
+        spec 2.12), "crc"}``.
     """
 
     def __init__(self, path: str | Path | None = None) -> None:
@@ -42,9 +43,11 @@ class EmulatedEeprom:
     @staticmethod
     def _record_crc(rec: dict) -> int:
         zero = rec.get("zero_raw")  # firmware 1.2's record carries the tare's raw zero (spec 2.11)
+        stiffness = rec.get("stiffness_g_per_mm")  # firmware 1.5's the contact's stiffness (spec 2.12)
         return wire.crc16(int(rec["scale_x100"]).to_bytes(4, "little", signed=True)
                           + int(rec["actuator_steps_per_mm"]).to_bytes(2, "little")
-                          + (b"" if zero is None else int(zero).to_bytes(4, "little", signed=True)))
+                          + (b"" if zero is None else int(zero).to_bytes(4, "little", signed=True))
+                          + (b"" if stiffness is None else int(stiffness).to_bytes(2, "little")))
 
     def valid_calibration(self) -> dict | None:
         """The stored record if its CRC holds and its values are usable (``calib_load``), else None."""
@@ -106,11 +109,14 @@ class EmulatedEeprom:
         self.safety_writes += 1
         self._write_file()
 
-    def save(self, scale_x100: int, actuator_steps_per_mm: int, zero_raw: int | None) -> None:
-        """``calib_save``: the record of these values (``zero_raw`` None: none known), with its CRC."""
+    def save(self, scale_x100: int, actuator_steps_per_mm: int, zero_raw: int | None,
+             stiffness_g_per_mm: int = 0) -> None:
+        """``calib_save``: the record of these values (``zero_raw`` None: none known; ``stiffness_g_per_mm`` 0: none
+        stored), with its CRC."""
         rec: dict[str, int] = {"scale_x100": int(scale_x100), "actuator_steps_per_mm": int(actuator_steps_per_mm)}
         if zero_raw is not None:
             rec["zero_raw"] = int(zero_raw)
+        rec["stiffness_g_per_mm"] = int(stiffness_g_per_mm)
         rec["crc"] = self._record_crc(rec)
         self.data["calibration"] = rec
         self._write_file()

@@ -52,7 +52,7 @@ def _save_wrong_calibration(controller: MegaController, scale: float) -> None:
             "scale_x100": controller.scale_x100,
             "actuator_steps_per_mm": controller.holding_register(wire.HoldingRegister.ACTUATOR_STEPS_PER_MM)}
         controller.eeprom.save(int(round(int(rec["scale_x100"]) * scale)), int(rec["actuator_steps_per_mm"]),
-                               rec.get("zero_raw"))
+                               rec.get("zero_raw"), int(rec.get("stiffness_g_per_mm", 0)))
 
 
 class ModelFaults:

@@ -43,7 +43,13 @@ from rigctl.devices import wire
 from rigctl.simulation.hil_clock import HilClockFile
 from rigctl.simulation.hil_faults import HilFaults
 from rigctl.simulation.hil_harness import HilError, _Harness
-from rigctl.simulation.mega_eeprom import EepromError, default_record, eeprom_offset, state_address
+from rigctl.simulation.mega_eeprom import (
+    EepromError,
+    default_record,
+    eeprom_offset,
+    factory_stiffness,
+    state_address,
+)
 from rigctl.simulation.priority import board_thread
 from rigctl.simulation.truth import TruthLog
 
@@ -357,7 +363,9 @@ class HilRig:
         # rate: the drum travel rendered for the Uno would play too fast or too slow)
         lock = self.clock_file.harness_args(paced=self.paced)
         self.clock.start()
-        record = default_record(int(m.loadcell_offset_counts))  # calibrated and tared on the unloaded cell
+        # calibrated and tared on the unloaded cell, its plate's stiffness stored (spec 2.12)
+        record = default_record(int(m.loadcell_offset_counts),
+                                factory_stiffness(m.contact_stiffness_g_per_mm, m.loadcell_counts_per_g))
         calibrated = ["--eeprom-write", f"{self._calibration_offset()}:{record.hex()}"] if self.factory_calibrated else []
         try:  # the controller's state byte: the harness reports each change (its latches, on the Mega's own clock)
             calibrated += ["--state-addr", str(state_address(build_dir / f"{self.mega_image}.elf"))]
@@ -603,8 +611,10 @@ class HilRig:
 
         true_scale = wire.join_s32(*(wire.holding_range(r)[2] for r in (HR.LOADCELL_SCALE_X100_HI,
                                                                           HR.LOADCELL_SCALE_X100_LO)))
+        m = self.config.mechanics
         return calibration_record(int(round(true_scale * scale)), wire.holding_range(HR.ACTUATOR_STEPS_PER_MM)[2],
-                                  int(self.config.mechanics.loadcell_offset_counts))
+                                  int(m.loadcell_offset_counts),
+                                  factory_stiffness(m.contact_stiffness_g_per_mm, m.loadcell_counts_per_g))
 
     def hang_loop(self) -> None:
         """Make the Mega's ``loop()`` hang until the MCU resets (only the test image ``mega_drum_test`` reacts: a

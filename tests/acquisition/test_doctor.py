@@ -165,6 +165,20 @@ def test_the_load_cell_scale_is_compared_with_the_rig_configs_calibration(tmp_pa
     assert r.status == "fail" and r.values["board_counts_per_g"] == 420.0 and "calibrat" in r.fix
 
 
+def test_the_reference_mass_check_reads_a_known_mass_and_the_stored_stiffness(tmp_path):
+    """Issue 75 item 6: the doctor's bring-up puts the reference mass on the cell (the simulated rig's model does)
+    and compares the reading with it; a load cell of half the gain its calibration says fails with the fix (a wrong
+    scale the EEPROM and the rig config agree on, which loadcell-scale cannot see); so does a rig whose calibration
+    stores no contact stiffness (the check of every press is off)."""
+    _, by = _run_service(tmp_path, None, ["reference-mass"])
+    r = by["reference-mass"]
+    assert r.status == "pass" and abs(r.values["off_pct"]) < 1 and r.values["stored_stiffness_g_per_mm"] > 0, r.line()
+    half = RigConfig(mechanics=MechanicsConfig(loadcell_counts_per_g=210.0))  # the factory's 420 counts/g: reads 1/2
+    _, by = _run_service(tmp_path, half, ["reference-mass"])
+    r = by["reference-mass"]
+    assert r.status == "fail" and r.values["read_g"] == pytest.approx(250, abs=10) and "reference mass" in r.fix
+
+
 def test_firmware_build_against_the_installed_sources():
     """Each board's build id (the Mega's BUILD_ID_0 .. _2 registers, wire-protocol 2.2; the Uno's banner build=, 1.4)
     against the installed sources' digest: equal -> pass; another -> fail naming the board's flash command; a Uno
@@ -390,7 +404,8 @@ def test_cli_doctor_hil_passes(tmp_path):
     assert not [n for n, c in by.items() if c["status"] == "fail"], by
     for name in ("port-permissions", "link", "firmware-version", "firmware-build", "controller-faults", "reset-cause",
                  "e-stop",
-                 "hx711-rate", "loadcell-zero", "noise-floor", "crosstalk", "loadcell-polarity", "force-step", "drum-speed",
+                 "hx711-rate", "loadcell-zero", "reference-mass", "noise-floor", "crosstalk", "loadcell-polarity",
+                 "force-step", "drum-speed",
                  "drum-direction"):
         assert by[name]["status"] == "pass", by[name]
     # both images under simavr were built by rigctl from the installed sources: both boards report their build id

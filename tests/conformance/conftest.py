@@ -210,6 +210,9 @@ def restore(drum: DrumClient, ctl: Controller) -> None:
                 raise
             drum.clock.sleep(0.05)
     defaults = [wire.holding_range(a)[2] for a in range(wire.N_HOLDING)]  # reserved addresses: 0
+    # the contact's stiffness stored with the calibration stays (spec 2.12: the factory's, the scale check's reference)
+    stiffness = wire.HoldingRegister.CALIBRATION_STIFFNESS_G_PER_MM
+    defaults[stiffness] = ctl.power_up_holding[stiffness]
     drum.write_holdings(0, defaults)
     home(drum)
     drum.wait_released(timeout_s=15.0)

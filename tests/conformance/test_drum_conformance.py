@@ -174,11 +174,14 @@ def test_identity_and_power_up_defaults(controller, drum):
     build id of rigctl's build in BUILD_ID_0 .. _2, spec 2.2: the virtual Mega as if flashed by rigctl, the image
     firmware.build() made), NOT_HOMED (spec 2.4: after any reset), no faults, nothing engaged, the drivers disabled,
     the reset cause power-on."""
-    assert controller.power_up_holding == [DEFAULT[r] for r in ADDRESSES]
+    stored = controller.power_up_holding[HR.CALIBRATION_STIFFNESS_G_PER_MM]  # the factory calibration's (spec 2.12)
+    assert stored > 0
+    assert controller.power_up_holding == [stored if r == HR.CALIBRATION_STIFFNESS_G_PER_MM else DEFAULT[r]
+                                           for r in ADDRESSES]
     st = DrumStatus.from_registers(controller.power_up_inputs)
     # 1.2: the force path of issue 55 (spec 2.11); 1.3: what proves the actuator's way for a back-off (2.11)
-    assert st.firmware == wire.MEGA_FIRMWARE_VERSION == (1, 5)
-    assert controller.power_up_inputs[IR.FIRMWARE_VERSION] == 261
+    assert st.firmware == wire.MEGA_FIRMWARE_VERSION == (1, 6)
+    assert controller.power_up_inputs[IR.FIRMWARE_VERSION] == 262
     own = firmware.source_digest()[:12]
     words = [controller.power_up_inputs[r] for r in (IR.BUILD_ID_0, IR.BUILD_ID_1, IR.BUILD_ID_2)]
     assert words == [int(own[i:i + 4], 16) for i in (0, 4, 8)]  # most significant word first
@@ -201,7 +204,7 @@ def test_every_holding_register_written_and_read_back(drum):
            HR.SPEED_LIMIT_0P1MMS: 1800, HR.FORCE_LIMIT_G: 1200, HR.FORCE_TOLERANCE_G: 20, HR.SETTLE_TIME_MS: 200,
            HR.WATCHDOG_MS: 2000, HR.LOADCELL_SCALE_X100: 41000, HR.ACTUATOR_STEPS_PER_MM: 800,
            HR.FORCE_KP_80SPS_NMS_G: 9000, HR.FORCE_KI_80SPS_NMS_GS: 8000, HR.FORCE_KP_10SPS_NMS_G: 1000,
-           HR.FORCE_KI_10SPS_NMS_GS: 500}
+           HR.FORCE_KI_10SPS_NMS_GS: 500, HR.CALIBRATION_STIFFNESS_G_PER_MM: 1234}
     for reg, value in new.items():  # function 06, one by one
         assert value != DEFAULT[reg]
         drum.write_holding(reg, value)
@@ -261,7 +264,7 @@ def test_illegal_addresses(drum):
         drum.write_holding(min(wire.RESERVED_HOLDING), 1)
     assert drum.read_holding(min(wire.RESERVED_HOLDING)) == 0
     assert holding(drum) == before
-    assert drum.read_input(IR.FIRMWARE_VERSION) == 261  # still answering (firmware 1.5)
+    assert drum.read_input(IR.FIRMWARE_VERSION) == 262  # still answering (firmware 1.6)
 
 
 def test_setpoint_limits(drum):

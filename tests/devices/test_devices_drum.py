@@ -26,7 +26,7 @@ from .conftest import home
 def test_every_input_register_read(drum, mega):
     regs = drum.read_inputs(0, wire.N_INPUT)
     assert [drum.read_input(reg) for reg in wire.RESERVED_INPUT] == [0] * len(wire.RESERVED_INPUT)
-    assert regs[IR.FIRMWARE_VERSION] == 261  # 1.5
+    assert regs[IR.FIRMWARE_VERSION] == 262  # 1.6
     assert regs[IR.STATE] == DrumState.IDLE  # homed by the fixture
     assert regs[IR.RESET_CAUSE] == wire.ResetCause.POWER_ON and regs[IR.BOOT_COUNT] == 0  # first boot of its EEPROM
     # homed and tared; the fixture's board is calibrated (a default calibration refuses PRESS, spec 2.11)
@@ -286,6 +286,9 @@ def test_home_tare_and_calibration_eeprom(drum, mega, tmp_path):
     assert not drum.read_status().calibration_defaults
     data = json.loads((tmp_path / "eeprom.json").read_text())
     assert data["calibration"]["scale_x100"] == 40000 and data["calibration"]["actuator_steps_per_mm"] == 500
+    # the lead screw's true 400 steps/mm again: 500 would make the probe's stiffness 1.25 x (the controller takes a
+    # step for 2 um, not 2.5), which the scale check of every probe refuses (LOADCELL_SCALE, wire-protocol 2.12)
+    drum.write_holding(HR.ACTUATOR_STEPS_PER_MM, 400)
     drum.set_force(420)
     drum.press()
     drum.wait_force_settled(6)

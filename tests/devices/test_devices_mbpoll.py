@@ -57,13 +57,16 @@ def test_sim_prints_ports_and_mbpoll_reads_the_register_map(sim_process):
     res = mbpoll("-t", "4", "-r", "1", "-c", str(wire.N_HOLDING), "-1", port)
     assert res.returncode == 0, res.stderr
     regs = parse_registers(res.stdout)
-    # every address of the span: the spec's defaults, reserved addresses 0 (spec 2)
-    assert regs == {a + 1: (0 if a == HR.COMMAND else wire.holding_range(a)[2]) for a in range(wire.N_HOLDING)}
+    # every address of the span: the spec's defaults, reserved addresses 0 (spec 2); the factory's calibration stored
+    # the rig's own plate's stiffness (spec 2.12: the default rig's 250 g/mm)
+    stored = {HR.CALIBRATION_STIFFNESS_G_PER_MM: 250}
+    assert regs == {a + 1: (0 if a == HR.COMMAND else stored.get(a, wire.holding_range(a)[2]))
+                    for a in range(wire.N_HOLDING)}
     res = mbpoll("-t", "3", "-r", "1", "-c", str(wire.N_INPUT), "-1", port)
     assert res.returncode == 0, res.stderr
     inputs = parse_registers(res.stdout)
     assert len(inputs) == wire.N_INPUT
-    assert inputs[IR.FIRMWARE_VERSION + 1] == 261  # 1.5
+    assert inputs[IR.FIRMWARE_VERSION + 1] == 262  # 1.6
     assert inputs[IR.STATE + 1] == wire.DrumState.NOT_HOMED  # powered up, nobody homed it
 
 

@@ -134,3 +134,25 @@ def test_a_wrong_calibration_saved_and_the_rate_pin(bench):
     bench.sim_wait(0.5)
     st = bench.drum.wait_hx711_rate(timeout_s=20)
     assert abs(st.hx711_rate_sps - 10.0) < 1.0, st
+
+
+def test_a_wrong_calibration_saved_latches_loadcell_scale_at_the_probe(bench):
+    """Issue 75 items 3 and 6 on the firmware (docs/wire-protocol.md 2.12): the factory's record carries the plate's
+    stiffness (1,000 g/mm); a wrong calibration saved with a valid checksum (half the scale: the reading twice the
+    force) and a power cycle keep it, and the next press's probe latches LOADCELL_SCALE (FAULT_BITS_HI) before any
+    press past the probe's force; the truth stays at the probe's. Without the check the press went to 1,000 g read."""
+    home(bench.drum)
+    assert bench.drum.calibration_stiffness() == 1000
+    bench.inject("calibration-scale=0.5@0")
+    bench.sim_wait(0.5)
+    bench.drum.wait_hx711_rate(timeout_s=10)
+    assert bench.drum.calibration_stiffness() == 1000  # the reset kept it (EEPROM)
+    home(bench.drum)
+    bench.drum.set_force(1000)
+    bench.drum.press()
+    st = bench.wait(lambda s: s.state in (State.FAULT, State.FORCE_SETTLED), 30)
+    assert st.faults == Fault.LOADCELL_SCALE, st
+    assert bench.drum.read_input(wire.InputRegister.FAULT_BITS_HI) == 2  # bit 17
+    assert st.contact_stiffness_g_per_mm == pytest.approx(2000, rel=0.08)
+    bench.wait(lambda s: s.actuator_mm < 0.05, 10)  # backed off home: the probe's step proved the way
+    assert bench.peak_g() < 300, bench.peak_g()  # the probe's 150 g read, 75 g true: never the 1,000 g asked

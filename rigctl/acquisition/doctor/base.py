@@ -125,11 +125,13 @@ class DoctorContext:
         opened rig's backend.
     config_path : the rig config file (default ``$RIGCTL_CONFIG`` / ``~/.config/rigctl/rig.json``).
     rest_s : duration of the taxel capture at rest, s (noise floor, crosstalk, Uno clock).
+    place_mass : ``place_mass(g)`` returns once the operator has put ``g`` grams on the load cell (0: taken off), for
+        the reference-mass check on hardware; None: a simulated rig's own (its backend's), else that check is skipped.
     """
 
     def __init__(self, mode: str, *, opener: Callable[[], Rig] | None = None, rig: Rig | None = None,
                  drum_port: str | None = None, taxel_port: str | None = None, config_path: Any = None,
-                 rest_s: float = 10.0) -> None:
+                 rest_s: float = 10.0, place_mass: Callable[[float], Any] | None = None) -> None:
         if opener is None and rig is None:
             raise ValueError("DoctorContext needs an opener or an open rig")
         self.mode = mode
@@ -140,6 +142,7 @@ class DoctorContext:
         self._ports = {k: v for k, v in (("drum", drum_port), ("taxel", taxel_port)) if v}
         self.config_path = config_path
         self.rest_s = float(rest_s)
+        self.place_mass = place_mass
         self._stream_paused = False
         self.cache: dict[str, Any] = {}
         #: set it (from any thread) to stop: the running check ends as ``skip: cancelled`` at its next poll, the

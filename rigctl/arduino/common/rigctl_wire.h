@@ -104,7 +104,7 @@
 #define RIGCTL_DRUM_BAUD             500000UL
 #define RIGCTL_DRUM_DEVICE_ID        1
 #define RIGCTL_MEGA_FW_MAJOR         1
-#define RIGCTL_MEGA_FW_MINOR         5
+#define RIGCTL_MEGA_FW_MINOR         6
 #define RIGCTL_MEGA_FIRMWARE_VERSION ((RIGCTL_MEGA_FW_MAJOR << 8) | RIGCTL_MEGA_FW_MINOR)
 
 /* Modbus function codes and exception codes used by the spec */
@@ -183,6 +183,10 @@
 #define RIGCTL_HREG_LOADCELL_SCALE_X100_LO_MIN 0
 #define RIGCTL_HREG_LOADCELL_SCALE_X100_LO_MAX 65535
 #define RIGCTL_HREG_LOADCELL_SCALE_X100_LO_DEF 42000
+#define RIGCTL_HREG_CALIBRATION_STIFFNESS_G_PER_MM     16
+#define RIGCTL_HREG_CALIBRATION_STIFFNESS_G_PER_MM_MIN 0
+#define RIGCTL_HREG_CALIBRATION_STIFFNESS_G_PER_MM_MAX 5000
+#define RIGCTL_HREG_CALIBRATION_STIFFNESS_G_PER_MM_DEF 0
 /* the signed 32-bit scale (HI/LO): range of its absolute value */
 #define RIGCTL_LOADCELL_SCALE_X100_ABS_MIN    100L
 #define RIGCTL_LOADCELL_SCALE_X100_ABS_MAX    10000000L
@@ -304,6 +308,8 @@
 /* bits 16-31: FAULT_BITS_HI (firmware 1.5; the fault word is 32 bits, masks unsigned long) */
 #define RIGCTL_FAULT_RESET_BIT             16
 #define RIGCTL_FAULT_RESET                 (1UL << RIGCTL_FAULT_RESET_BIT)
+#define RIGCTL_FAULT_LOADCELL_SCALE_BIT    17
+#define RIGCTL_FAULT_LOADCELL_SCALE        (1UL << RIGCTL_FAULT_LOADCELL_SCALE_BIT)
 #define RIGCTL_LOADCELL_TIMEOUT_MS         200
 #define RIGCTL_HOME_MAX_TRAVEL_MM          25
 #define RIGCTL_HOME_TIMEOUT_MS             10000
@@ -376,14 +382,12 @@
  * the loop's clamp speed up to this far before its zero-force point, then probes from there */
 #define RIGCTL_PROBE_LOCATED_MARGIN_UM     300
 #define RIGCTL_PROBE_REFINE_G              100
+/* 2.12 the reading's scale checked against the contact's stiffness stored with the calibration: the probe's
+ * stiffness over the stored one outside 100/(100 + SCALE_CHECK_PCT) .. (100 + SCALE_CHECK_PCT)/100 latches
+ * LOADCELL_SCALE */
+#define RIGCTL_SCALE_CHECK_PCT             15
 #define RIGCTL_HX711_STUCK_READINGS        6
 #define RIGCTL_HX711_CADENCE_PCT           50
-/* 2.11 a back-off under load proves its way first: steps of at most BACKOFF_PROOF_UM (and BACKOFF_PROOF_G of spring
- * force at the contact's stiffness), each held until the HX711 has settled on it, at most BACKOFF_PROOF_TRIES of them:
- * its blind travel towards the sensor on a reversed motor is at most TRIES x UM */
-#define RIGCTL_BACKOFF_PROOF_UM            8
-#define RIGCTL_BACKOFF_PROOF_G             40
-#define RIGCTL_BACKOFF_PROOF_TRIES         4
 #define RIGCTL_HOME_CREEP_UM               12
 #define RIGCTL_HOME_PROOF_FALL_G           50
 #define RIGCTL_HOME_RISE_G                 30

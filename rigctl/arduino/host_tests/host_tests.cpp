@@ -136,9 +136,9 @@ static void test_modbus()
     CHECK(is_exception(transact(with_crc({1, 4, 0, RIGCTL_N_INPUT, 0, 1})), 4, 2));
     CHECK(is_exception(transact(with_crc({1, 6, 0, RIGCTL_N_HOLDING, 0, 1})), 6, 2));
     // a reserved address inside the span reads 0 and accepts only 0
-    r = transact(with_crc({1, 3, 0, 16, 0, 1}));
+    r = transact(with_crc({1, 3, 0, 17, 0, 1}));
     CHECK(r.size() == 7 && r[3] == 0 && r[4] == 0);
-    CHECK(is_exception(transact(with_crc({1, 6, 0, 16, 0, 1})), 6, 3));
+    CHECK(is_exception(transact(with_crc({1, 6, 0, 17, 0, 1})), 6, 3));
     CHECK(is_exception(transact(with_crc({1, 3, 0, 0, 0, 0})), 3, 3)); // zero count
     // unknown function -> 01
     CHECK(is_exception(transact(with_crc({1, 5, 0, 0, 0xFF, 0})), 5, 1));
@@ -887,6 +887,56 @@ static void test_stiffness()
     std::printf("stiffness: ok\n");
 }
 
+// spec 2.12 (issue 75): the reading's scale checked against the contact's stiffness stored with the calibration. A cell's
+// gain (or a wrong scale saved) scales the reading and the probed stiffness together; the probe's stiffness over the
+// stored one outside 1/1.15 .. 1.15 latches LOADCELL_SCALE before any press past the probe, and the actuator backs off
+// home (the probe's step proved the way). None stored: no check (the press goes on at gain^-1 x the setpoint)
+static void test_scale_check()
+{
+    struct Case {
+        double gain;     // the cell's signal over what its calibration says
+        uint16_t stored; // CALIBRATION_STIFFNESS_G_PER_MM (0: none)
+        bool latches;
+    };
+    const Case cases[] = {{1.0, 1000, false}, {0.5, 1000, true}, {0.8, 1000, true}, {2.0, 1000, true},
+                          {0.93, 1000, false}, {0.5, 0, false}};
+    for (const Case &k : cases) {
+        ctl_t c;
+        Plant p;
+        uint32_t now = 0;
+        p.sinc4 = true;
+        p.k = 1000;
+        ctl_init(&c, 0, 0);
+        c.hreg[RIGCTL_HREG_CALIBRATION_STIFFNESS_G_PER_MM] = k.stored; // the glue's, from EEPROM at boot
+        run_ms(c, p, now, 100);
+        home(c, p, now);
+        p.counts_per_g = 420 * k.gain; // after the tare: the zero is right, the scale is not
+        CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 700) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
+        for (int i = 0; i < 800 && c.state == RIGCTL_STATE_SEEKING_FORCE; i++) run_ms(c, p, now, 10);
+        double at_latch = p.force();
+        run_ms(c, p, now, 3000);
+        std::printf("scale check: gain %.2f stored %u: measured %u g/mm, faults 0x%lx (hi %u), peak %.0f g, "
+                    "force at the latch %.0f g, now %.0f g\n", k.gain, k.stored, c.stiffness_g_mm,
+                    (unsigned long)c.faults, ctl_read_input(&c, RIGCTL_IREG_FAULT_BITS_HI), p.peak_g, at_latch,
+                    p.force());
+        if (k.latches) {
+            CHECK(c.faults == RIGCTL_FAULT_LOADCELL_SCALE && c.state == RIGCTL_STATE_FAULT);
+            CHECK(ctl_read_input(&c, RIGCTL_IREG_FAULT_BITS) == 0 && ctl_read_input(&c, RIGCTL_IREG_FAULT_BITS_HI) == 2);
+            CHECK(p.peak_g < 0.5 * 700 / k.gain + 60); // the probe's force only, never the setpoint's
+            CHECK(p.force() == 0.0 && c.homed);        // backed off home: the probe's step proved the way
+            // CLEAR_FAULT and a new press: probed again, latched again (every press from rest probes)
+            CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT) && c.state == RIGCTL_STATE_IDLE);
+            CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
+            for (int i = 0; i < 800 && c.state == RIGCTL_STATE_SEEKING_FORCE; i++) run_ms(c, p, now, 10);
+            CHECK(c.faults == RIGCTL_FAULT_LOADCELL_SCALE && p.peak_g < 0.5 * 700 / k.gain + 60);
+        } else {
+            CHECK(c.faults == 0 && c.state == RIGCTL_STATE_FORCE_SETTLED);
+            CHECK(std::abs(p.force() - 700 / k.gain) < 30);
+        }
+    }
+    std::printf("scale check: ok\n");
+}
+
 int main()
 {
     test_crc();
@@ -899,6 +949,7 @@ int main()
     test_safety();
     test_reset_latch();
     test_stiffness();
+    test_scale_check();
     std::printf("%d checks, %d failures\n", checks, failures);
     return failures ? 1 : 0;
 }

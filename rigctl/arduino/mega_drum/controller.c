@@ -10,7 +10,7 @@
     X(RAMP_END_SPEED_0P1MMS) X(RAMP_DURATION_MS) X(SPEED_LIMIT_0P1MMS) X(FORCE_LIMIT_G) X(FORCE_TOLERANCE_G)      \
     X(SETTLE_TIME_MS) X(WATCHDOG_MS) X(LOADCELL_SCALE_X100) X(ACTUATOR_STEPS_PER_MM) X(HX711_RATE_SPS)           \
     X(FORCE_KP_80SPS_NMS_G) X(FORCE_KI_80SPS_NMS_GS) X(FORCE_KP_10SPS_NMS_G) X(FORCE_KI_10SPS_NMS_GS)          \
-    X(LOADCELL_SCALE_X100_HI) X(LOADCELL_SCALE_X100_LO)
+    X(LOADCELL_SCALE_X100_HI) X(LOADCELL_SCALE_X100_LO) X(CALIBRATION_STIFFNESS_G_PER_MM)
 #define HREG_MIN(name) [RIGCTL_HREG_##name] = RIGCTL_HREG_##name##_MIN,
 #define HREG_MAX(name) [RIGCTL_HREG_##name] = RIGCTL_HREG_##name##_MAX,
 #define HREG_DEF(name) [RIGCTL_HREG_##name] = RIGCTL_HREG_##name##_DEF,
@@ -134,10 +134,10 @@ static uint8_t home_overloaded(const ctl_t *c)
  * towards the sensor is one step (<= BACKOFF_PROOF_UM, the campaign's step-after-latch slack) on a contact stiff enough
  * to show it, whatever the HX711's rate. After BACKOFF_PROOF_TRIES steps with neither (a contact so soft that the
  * travel carries no force) it goes on, watched. Under no load (below BACKOFF_LOAD_G) it runs at once, watched. */
-#define BACKOFF_PROOF_G ((float)RIGCTL_BACKOFF_PROOF_G)
-#define BACKOFF_PROOF_UM ((float)RIGCTL_BACKOFF_PROOF_UM)
+#define BACKOFF_PROOF_G 40.0f
+#define BACKOFF_PROOF_UM 8.0f
 #define BACKOFF_MIN_G 1.0f
-#define BACKOFF_PROOF_TRIES ((uint8_t)RIGCTL_BACKOFF_PROOF_TRIES)
+#define BACKOFF_PROOF_TRIES 4u
 #define BACKOFF_LOAD_G 30.0f
 enum { BACKOFF_FREE = 0, BACKOFF_REST, BACKOFF_STEP, BACKOFF_SETTLE };
 /* the power-up tare's agreement with the stored zero (ctl_loadcell), g */
@@ -437,6 +437,19 @@ static uint8_t approach_fast(const ctl_t *c)
     return c->contact_located && (float)c->act_pos_steps < c->located_x0_steps - margin;
 }
 
+/* the reading's scale checked against something other than the reading (spec 2.12, issue 75): a load cell's gain or
+ * range, or a wrong calibration saved with a valid checksum, scales the reading and the probed stiffness together, so
+ * FORCE_LIMIT and POSITION_LIMIT both allow 1/X of the true force. The contact's stiffness stored with the calibration
+ * (CALIBRATION_STIFFNESS_G_PER_MM, EEPROM: measured when the scale was verified with a reference mass) is the contact's
+ * own, whatever the reading: the probe's over it outside 100/(100 + SCALE_CHECK_PCT) .. (100 + SCALE_CHECK_PCT)/100
+ * is a scale that disagrees. None stored (0): no check (the host's doctor says so) */
+static uint8_t scale_disagrees(const ctl_t *c)
+{
+    uint32_t ref = c->hreg[RIGCTL_HREG_CALIBRATION_STIFFNESS_G_PER_MM], k = c->stiffness_g_mm;
+    if (!ref) return 0;
+    return k * 100u > ref * (100u + RIGCTL_SCALE_CHECK_PCT) || ref * 100u > k * (100u + RIGCTL_SCALE_CHECK_PCT);
+}
+
 /* one reading while the probe runs: approach until contact, settle, step PROBE_STEP_UM, settle, k = dF / dx */
 /* the load at which the probe's approach has found the contact: PROBE_CONTACT_G, or half the setpoint if less */
 static float contact_g(const ctl_t *c)
@@ -500,6 +513,11 @@ static void probe_reading(ctl_t *c, float f)
             /* the probe's measuring step(s) went forward and the settled load rose with them: the way is proven for
              * the rest of this press (spec 2.11), until the release, HOME, a fault or the watch's evidence against */
             c->press_dir_held = f - c->probe_f1_gf >= (float)RIGCTL_PRESS_DIR_G;
+            /* before any press past the probe's force: the way proven by the step(s), it backs off home. Only a probe
+             * whose steps pressed half of PROBE_REFINE_G or more measures the stiffness within the tolerance (a
+             * setpoint under 100 g, a RUN at 0 g: not checked; the next press at a force checks it) */
+            if (f - c->probe_f1_gf >= 0.5f * (float)RIGCTL_PROBE_REFINE_G && scale_disagrees(c))
+                fault(c, RIGCTL_FAULT_LOADCELL_SCALE);
         }
         return;
     }

@@ -365,6 +365,18 @@ struct calib3_t {
 #define CALIB3_MAGIC 0x525A /* "RZ" */
 #define CALIB_NO_ZERO INT32_MIN
 static calib3_t EEMEM ee_calib3;
+/* firmware 1.5: the contact's stiffness stored with the calibration too (spec 2.12: the reading's scale checked
+ * against it at every probe; 0: none) */
+struct calib4_t {
+    uint16_t magic;
+    int32_t loadcell_scale_x100;
+    uint16_t actuator_steps_per_mm;
+    int32_t zero_raw;
+    uint16_t stiffness_g_mm;
+    uint16_t crc;
+};
+#define CALIB4_MAGIC 0x524B /* "RK" */
+static calib4_t EEMEM ee_calib4;
 static uint16_t EEMEM ee_boot_count;
 
 /* BOOT_COUNT (spec 2.7): EEPROM is written only at a cold boot (power-on or brown-out, or RAM lost); a warm reset
@@ -451,13 +463,24 @@ static void safety_save(void)
 }
 
 /* returns 1 if a valid record was found; else scale and steps are 0 (the controller's defaults); *zero is the stored
- * tare zero (CALIB_NO_ZERO: none, an older record) */
-static uint8_t calib_load(int32_t *scale, uint16_t *steps, int32_t *zero)
+ * tare zero (CALIB_NO_ZERO: none, an older record), *stiffness the contact's stored with it (0: none, an older record) */
+static uint8_t calib_load(int32_t *scale, uint16_t *steps, int32_t *zero, uint16_t *stiffness)
 {
+    calib4_t c4;
     calib3_t c3;
     calib_t c;
     calib_v1_t v1;
     *zero = CALIB_NO_ZERO;
+    *stiffness = 0;
+    eeprom_read_block(&c4, &ee_calib4, sizeof(c4));
+    if (c4.magic == CALIB4_MAGIC && c4.crc == rigctl_crc16((const uint8_t *)&c4, sizeof(c4) - 2) &&
+        c4.loadcell_scale_x100 && c4.actuator_steps_per_mm) {
+        *scale = c4.loadcell_scale_x100;
+        *steps = c4.actuator_steps_per_mm;
+        *zero = c4.zero_raw;
+        *stiffness = c4.stiffness_g_mm;
+        return 1;
+    }
     eeprom_read_block(&c3, &ee_calib3, sizeof(c3));
     if (c3.magic == CALIB3_MAGIC && c3.crc == rigctl_crc16((const uint8_t *)&c3, sizeof(c3) - 2) &&
         c3.loadcell_scale_x100 && c3.actuator_steps_per_mm) {
@@ -488,13 +511,14 @@ static uint8_t calib_load(int32_t *scale, uint16_t *steps, int32_t *zero)
 /* the record with the tare in force (or the zero stored before, if no tare was taken since the reset) */
 static void calib_save(void)
 {
-    calib3_t c;
-    c.magic = CALIB3_MAGIC;
+    calib4_t c;
+    c.magic = CALIB4_MAGIC;
     c.loadcell_scale_x100 = ctl_scale_x100(&ctl);
     c.actuator_steps_per_mm = ctl.hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
     c.zero_raw = ctl.tared ? ctl.tare_offset : ctl.zero_valid ? ctl.zero_raw : CALIB_NO_ZERO;
+    c.stiffness_g_mm = ctl.hreg[RIGCTL_HREG_CALIBRATION_STIFFNESS_G_PER_MM];
     c.crc = rigctl_crc16((const uint8_t *)&c, sizeof(c) - 2);
-    eeprom_update_block(&c, &ee_calib3, sizeof(c));
+    eeprom_update_block(&c, &ee_calib4, sizeof(c));
     ctl.zero_raw = c.zero_raw;
     ctl.zero_valid = c.zero_raw != CALIB_NO_ZERO;
     ctl.calib_defaults = 0;
@@ -660,10 +684,11 @@ static uint16_t reset_cause(void)
 void setup(void)
 {
     int32_t scale, zero;
-    uint16_t steps;
+    uint16_t steps, stiffness;
     cli();
-    uint8_t calib_ok = calib_load(&scale, &steps, &zero);
+    uint8_t calib_ok = calib_load(&scale, &steps, &zero, &stiffness);
     ctl_init(&ctl, scale, steps);
+    ctl.hreg[RIGCTL_HREG_CALIBRATION_STIFFNESS_G_PER_MM] = stiffness; /* spec 2.12 */
     ctl.calib_defaults = !calib_ok;
     ctl.zero_raw = zero;
     ctl.zero_valid = calib_ok && zero != CALIB_NO_ZERO;
