@@ -92,6 +92,28 @@ def _load(path, encode, variants, task="table1", progress=False, keep_nonfinite=
         return loaded
 
 
+def _import_flags_warning(path) -> None:
+    """Warn (one line) when the session an encoded file was encoded from was flagged by its import (files whose trials
+    do not follow their presses, outlier periods or trial counts: rigctl.storage.ledger.session_flags): the encoder
+    said so, and analyze of the encoded file says it again. A session analysed directly is warned about by the
+    encoder; a session no longer found says nothing here."""
+    from rigctl.analysis.model import session_of
+    from rigctl.storage.ledger import session_flags
+    from rigctl.storage.session import SessionError, open_session
+
+    try:
+        session, params = session_of(path)
+        if params is None:
+            return
+        with open_session(session) as s:
+            flags = session_flags(s.attrs)
+    except (OSError, ValueError, KeyError, SessionError):  # (FileBusy is an OSError)
+        return
+    if flags:
+        click.echo(f"warning: {path}: encoded from {session.name}, whose import flagged {len(flags)} file(s) (rigctl "
+                   f"info {session.name} lists them): {flags[0]}", err=True)
+
+
 def _length_warning(path) -> None:
     """Warn (one line) when the encoded file's trial durations differ by texture (rigctl.encoding.lengths): a
     classifier can read the label off the padding. A session encoded on the fly is warned about by the encoder."""
@@ -387,6 +409,7 @@ def _run(opts: AnalyzeOptions, execution=None):
     _check_variants(opts.file, opts.variants)
     fs = _load(opts.file, opts.encode, opts.variants, opts.task, opts.progress, opts.keep_nonfinite)
     _length_warning(opts.file)
+    _import_flags_warning(opts.file)
     if opts.textures:
         try:
             fs = fs.select_textures(opts.textures)

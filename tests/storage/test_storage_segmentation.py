@@ -72,6 +72,10 @@ def test_cycles_find_every_cycle_at_its_press_onset_with_a_table_and_the_outlier
                                     "--variant", "original"])
     assert enc.exit_code == 0 and "the import flagged 1 file(s) (rigctl info lists them): " + short in enc.output, \
         enc.output
+    ana = CliRunner().invoke(main, ["analyze", str(tmp_path / "e.h5"), "--task", "textures", "--repeats", "1",
+                                    "--pcs", "1-2", "--no-progress"])  # the encoded file: the session's flag again
+    assert ana.exit_code == 0 and ("encoded from s.h5, whose import flagged 1 file(s) (rigctl info s.h5 lists them): "
+                                   + short) in ana.output, ana.output
     got = trials_by_file(out)
     assert sorted(got) == sorted(t.path.name for t in truth)
     for t in truth:
