@@ -92,6 +92,7 @@ from rigctl.encoding.speed import (
     speed_coefficient,
     window_speeds,
 )
+from rigctl.encoding.trial_labels import operator_paced, plan_labels, trial_labels
 from rigctl.storage.encoded import ALL_VARIANTS, MAIN_VARIANTS, VARIANTS, EncodedWriter
 from rigctl.storage.outputs import check_output
 
@@ -164,56 +165,6 @@ def _batch_task(session_path, ids, speed, coeffs, coeffs_lf, offset, scale, vari
         RateConversion(params.fs_hz, params.fs_hz)
     rg, ws = _read_batch(session_path, ids, speed, want_ws, params.window_s, conv, params.crop_s)
     return _encode_read(rg, ws, speed, coeffs, coeffs_lf, offset, scale, variants, store_spikes, params)
-
-
-# ---------------------------------------------------------------------------------------------------------- session
-def _labels(session, ids):
-    return {**_plan_labels(session, ids), **_recordings(session, ids)}
-
-
-def _plan_labels(session, ids):
-    """The plan's labels of ``ids``: trial id, texture, speed, force, profile."""
-    plan = session.plan
-    row_of = {int(t): i for i, t in enumerate(plan["trial_id"])}
-    rows = plan[[row_of[t] for t in ids]]
-    names = plan.dtype.names
-
-    def col(name, default):
-        return rows[name] if name in names else np.full(len(ids), default)
-
-    def text(values):
-        return np.array([v.decode("utf-8") if isinstance(v, bytes) else str(v) for v in np.asarray(values)],
-                        dtype=str)
-
-    return {
-        "trial_id": np.asarray(ids, dtype=np.uint32),
-        "texture": text(col("texture", "")),
-        "speed_mm_s": np.asarray(col("speed_mm_s", np.nan), dtype=np.float64),
-        "force_g": np.asarray(col("force_g", np.nan), dtype=np.float64),
-        "profile": text(col("profile", "constant")),
-    }
-
-
-def _operator_paced(session, ids) -> bool:
-    """Whether the trials' lengths are the operator's: a handheld scan's boundaries are positions on the plate
-    (``boundary = "position"``, rigctl.acquisition.handheld), so its length is the operator's speed."""
-    return bool(ids) and session.trial_attrs(int(ids[0])).get("boundary") == "position"
-
-
-def _recordings(session, ids) -> dict[str, np.ndarray]:
-    """An imported session's source recording per trial (``recording``: file, ``[block]`` of a stacked file) and
-    where in it the trial starts (``recording_start_s``), from the trial attributes ``rigctl import`` writes; {}
-    for a session recorded here (the session is the recording)."""
-    if str(session.attrs.get("kind", "")) != "imported":
-        return {}
-    rec, start = [], []
-    for tid in ids:
-        a = session.trial_attrs(int(tid))
-        name = str(a.get("source_file", ""))
-        block = a.get("source_block")
-        rec.append(name if block is None else f"{name}[{int(block)}]")
-        start.append(float(a.get("segment_start_s", 0.0)))
-    return {"recording": np.array(rec, dtype=str), "recording_start_s": np.asarray(start, dtype=np.float64)}
 
 
 def _add_spike_tables(writer, store_spikes, n_ch: int, p: EncodeParams) -> None:
@@ -517,7 +468,7 @@ def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | No
     with open_session(run.session_path) as s:
         kept = _kept_for_fit(s, run, p)
         ids, excluded = _usable_ids(s, run, kept)
-        labels = _labels(s, ids)
+        labels = trial_labels(s, ids)
         conv = rate_conversion(s.layout.sample_rate_hz, p.fs_hz)
         p.input_rate_hz, p.fs_hz = conv.input_rate_hz, conv.model_rate_hz
         log.info("rate: %s", conv.describe())
@@ -530,7 +481,7 @@ def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | No
         batches = [np.arange(i, min(i + bt, len(ids))) for i in range(0, len(ids), bt)]
         read = _Read(s.layout, s.textures, ids, labels, conv, batches, keep_all, [], [], np.zeros(0, np.int64),
                      np.zeros(len(ids), dtype=np.int64), np.zeros(len(ids), dtype=bool), {}, excluded,
-                     np.zeros(0), np.zeros(0), TaxelRange(), _operator_paced(s, ids))
+                     np.zeros(0), np.zeros(0), TaxelRange(), operator_paced(s, ids))
         if not kernels_cached():
             progress_note(progress, "reading trials", "compiling the encoding kernels (first run only: numba "
                                                       "caches them) ...")
@@ -627,7 +578,7 @@ def _kept_for_fit(s: Any, run: EncodeRun, p: EncodeParams) -> Any:
     if run.trial_ids is not None:
         complete = set(ids)
         ids = [t for t in run.trial_ids if t in complete]
-    keep = _fit_keep(s, ids, _plan_labels(s, ids), conv, run.fit_memory_bytes) if ids else set()
+    keep = _fit_keep(s, ids, plan_labels(s, ids), conv, run.fit_memory_bytes) if ids else set()
     bt = run.batch_trials  # each batch's share of the subsample: the blocks pass 1 takes (as _range_pass's batches)
     return KeptTaxels(s, ([ids[i] for i in range(k, min(k + bt, len(ids))) if i in keep]
                           for k in range(0, len(ids), bt)))
