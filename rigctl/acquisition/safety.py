@@ -88,7 +88,7 @@ CAUSES: dict[str, tuple[str, str]] = {
     "contact-lost": ("contact lost while the force held", "check the load cell and the HX711: the reading did not "
                                                           "follow the contact" + _CRUSH),
     "loadcell-scale": ("the reading's scale disagrees with the stiffness stored at calibration",
-                       "check the cell and recalibrate with the reference mass (rigctl calibrate loadcell)" + _CRUSH),
+                       "check the cell and recalibrate with the reference mass (the GUI's calibration tab)" + _CRUSH),
 }
 
 #: the cause of each controller fault bit (the first that is set names the latch)

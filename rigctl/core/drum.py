@@ -315,7 +315,7 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "the reading's scale disagrees with the stiffness stored at calibration: the probe measured the contact "
         "through the load cell at a stiffness more than 15 % off the one stored when the scale was verified, so the "
         "reading (and the force limit) is off by as much. It backed off before pressing. Check the cell and recalibrate "
-        "with the reference mass (rigctl calibrate loadcell, which stores the contact's stiffness again); if the "
+        "with the reference mass (the GUI's calibration tab, which stores the contact's stiffness again); if the "
         "sensor, its mount or a plate of another material was changed since, that recalibration stores the new "
         "contact. Then CLEAR_FAULT."),
 }

@@ -440,8 +440,8 @@ def check_loadcell_scale(ctx: DoctorContext) -> CheckResult:
 #: every press, docs/wire-protocol.md 2.12, allows 15 %: this one finds what that one lets through)
 REFERENCE_MASS_G = 500.0
 REFERENCE_MASS_TOLERANCE_PCT = 2.0
-REFERENCE_MASS_FIX = ("recalibrate the load cell with the reference mass (rigctl calibrate loadcell, or the GUI's "
-                      "calibration tab: it stores the scale and the contact's stiffness together); if it reads wrong "
+REFERENCE_MASS_FIX = ("recalibrate the load cell with the reference mass (the GUI's calibration tab, or "
+                      "rigctl.operations.calibrate_loadcell: it stores the scale and the contact's stiffness together); if it reads wrong "
                       "again, check the cell, its excitation and signal wires and that it is the cell of the rig's "
                       "range")
 
