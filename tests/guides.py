@@ -17,10 +17,12 @@ A block fails the test when a command in it fails (even the first of ``a && b``)
 
 from __future__ import annotations
 
+import fcntl
 import functools
 import os
 import re
 import resource
+import shutil
 import signal
 import subprocess
 import sys
@@ -154,12 +156,98 @@ def script(runnable: list[Block], work: Path) -> str:
     return "\n".join(parts) + "\n"
 
 
-def guide_env(work: Path) -> dict[str, str]:
-    """The environment a guide runs in: this interpreter's environment first on the PATH (its ``rigctl`` and
-    ``python``), the rig config and the user's config folder inside the scratch folder (never ``$HOME``'s)."""
+#: what is not the project's source (build output, caches, environments, version control): not copied for the build
+_NOT_SOURCE = shutil.ignore_patterns(".git", ".venv*", "build", "dist", "*.egg-info", "__pycache__", ".*_cache",
+                                     ".hypothesis", "site")
+
+
+def copy_of_the_sources(into: Path) -> Path:
+    """A copy of the checkout's sources in ``into/rigctl`` (setuptools writes build/ and *.egg-info beside them: never
+    into the checkout)."""
+    src = into / "rigctl"
+    shutil.copytree(REPO, src, symlinks=True, ignore=_NOT_SOURCE)
+    return src
+
+
+#: the extras the guides' own pages install (labrecorder.md's `pip install 'rigctl[lsl]'`, which the handheld
+#: page's tracker stream needs too; spiking-networks.md's `pip install 'rigctl[nir]'`): none of the test extras
+GUIDE_EXTRAS = ("lsl", "nir")
+
+
+@dataclass(frozen=True)
+class ReadmeEnv:
+    """A virtual environment made as the README makes it (``python3 -m venv .venv``: the interpreter's own pip and,
+    on 3.11, setuptools), holding the wheel built from the sources with rigctl's dependencies and the guides' own
+    extras (:data:`GUIDE_EXTRAS`), none of the test extras; ``seconds`` and ``cpu_s`` its build's cost."""
+
+    venv: Path
+    python: Path
+    seconds: float
+    cpu_s: float
+
+    @property
+    def bin(self) -> Path:
+        return self.venv / "bin"
+
+
+def readme_env(root: Path, base_python: str, name: str = "py", *, kernels: bool = True) -> ReadmeEnv:
+    """The :class:`ReadmeEnv` of ``base_python`` in ``root/readme-<name>``, built by the first test process that asks
+    (the others wait on its lock and reuse it; ``root`` is shared by a run's workers): a copy of the sources, the
+    wheel built from it as ``pip install .`` builds it (setup.py's step compiles the model rig's C into it), ``python3
+    -m venv``, and the wheel with its dependencies installed into it. The packages come from uv's cache when it holds
+    them (the test environment's install put them there: offline, seconds) and from the package index otherwise (a
+    first Python 3.12 run); the same packages pip would install. Then (``kernels``) numba's kernels of the installed
+    package are compiled into $NUMBA_CACHE_DIR once (scripts/compile_kernels.py run by the new interpreter, whose stamp
+    is the test environment's on the same Python), before any guide."""
+    folder = root / f"readme-{name}"
+    folder.mkdir(parents=True, exist_ok=True)
+    venv = folder / ".venv"
+    with open(folder / ".lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        done = folder / "ready"
+        if not done.is_file():
+            t0, cpu0 = time.monotonic(), _children_cpu_s()
+            shutil.rmtree(folder / "src", ignore_errors=True)
+            src = copy_of_the_sources(folder / "src")
+            quiet = dict(capture_output=True, text=True, timeout=900)
+            env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV", "PIP_NO_INDEX",
+                                                                        "PIP_FIND_LINKS")}
+            steps = [
+                [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w",
+                 str(folder / "wheels"), str(src)],
+                [base_python, "-m", "venv", str(venv)],
+            ]
+            for argv in steps:
+                r = subprocess.run(argv, env=env, **quiet)  # type: ignore[call-overload]
+                assert r.returncode == 0, (argv, r.stdout[-2000:], r.stderr[-3000:])
+            (wheel,) = (folder / "wheels").glob("rigctl-*.whl")
+            install = [sys.executable, "-m", "uv", "pip", "install", "-q", "--python", str(venv / "bin" / "python"),
+                       f"{wheel}[{','.join(GUIDE_EXTRAS)}]"]
+            r = subprocess.run([*install[:5], "--offline", *install[5:]], env=env, **quiet)  # type: ignore
+            if r.returncode != 0:  # not all in uv's cache (another Python's wheels): from the index
+                r = subprocess.run(install, env=env, **quiet)  # type: ignore[call-overload]
+            assert r.returncode == 0, (install, r.stdout[-2000:], r.stderr[-3000:])
+            if kernels:
+                r = subprocess.run([str(venv / "bin" / "python"), str(REPO / "scripts" / "compile_kernels.py")],
+                                   env=env, cwd=folder, **quiet)  # type: ignore[call-overload]
+                assert r.returncode == 0, r.stderr[-3000:]
+            done.write_text(f"{time.monotonic() - t0:.1f} {_children_cpu_s() - cpu0:.1f}\n")
+        seconds, cpu_s = (float(x) for x in done.read_text().split())
+    return ReadmeEnv(venv, venv / "bin" / "python", seconds, cpu_s)
+
+
+def guide_env(work: Path, readme: ReadmeEnv | None = None) -> dict[str, str]:
+    """The environment a guide runs in: the README's environment ``readme`` activated (its ``rigctl``, ``python`` and
+    ``pip`` first on the PATH; None: this interpreter's environment's), the rig config and the user's config folder
+    inside the scratch folder (never ``$HOME``'s)."""
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
-    env.update(PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
-               RIGCTL_CONFIG=str(work.parent / "rig.json"), XDG_CONFIG_HOME=str(work.parent / "config"),
+    if readme is not None:
+        outer = str(Path(sys.executable).parent)
+        path = os.pathsep.join(p for p in os.environ["PATH"].split(os.pathsep) if p != outer)
+        env.update(PATH=f"{readme.bin}{os.pathsep}{path}", VIRTUAL_ENV=str(readme.venv))
+    else:
+        env.update(PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
+    env.update(RIGCTL_CONFIG=str(work.parent / "rig.json"), XDG_CONFIG_HOME=str(work.parent / "config"),
                PYTHONUNBUFFERED="1", COLUMNS="120")
     # a guide's pip builds in an isolated environment as a user's does (never from this environment's build tools,
     # which a README environment lacks): its build tools from the wheelhouse scripts/test.sh downloaded, offline
@@ -177,7 +265,7 @@ def _children_cpu_s() -> float:
 
 
 def run_page(page: str, work: Path, *, timeout_s: float = 900, preload: bool = True,
-             client: Callable[[], Path] | None = None,
+             client: Callable[[], Path] | None = None, readme: ReadmeEnv | None = None,
              select: Callable[[Block], bool] = lambda b: b.runs_here) -> list[BlockRun]:
     """Run the blocks of ``page`` that run here, in order, in one shell in ``work``; an AssertionError names the
     block that failed (or printed a traceback) with its output. ``preload``: the shell's ``rigctl`` is the preloaded
@@ -185,20 +273,21 @@ def run_page(page: str, work: Path, *, timeout_s: float = 900, preload: bool = T
     ``rigctl`` client script of the test worker's server, started once for the worker's tests: each command runs in
     the page's folder and environment all the same) when the page runs a ``rigctl`` command, else a server of the
     page's own when it runs more than two (starting one costs about what one command's imports do). Whatever the
-    page left running (a ``&`` job) ends with it. ``select``: the blocks that run (default: those the page's own
-    test runs)."""
+    page left running (a ``&`` job) ends with it. ``readme``: the README's environment the page runs in
+    (:func:`guide_env`; ``client`` then a server of that environment's interpreter). ``select``: the blocks that run
+    (default: those the page's own test runs)."""
     runnable = [b for b in blocks(page) if select(b)]
     work.mkdir(parents=True, exist_ok=True)
     path = work.parent / f".{Path(page).stem}.sh"
     path.write_text(script(runnable, work))
     t0 = time.monotonic()
     cpu0 = _children_cpu_s()
-    env = guide_env(work)
+    env = guide_env(work, readme)
     server = None
     n_rigctl = sum(line.lstrip().startswith("rigctl ") for b in runnable for line in b.as_run().splitlines())
     if preload and (n_rigctl > 2 or client is not None and n_rigctl > 0):
         if client is None:
-            server = launcher.Launcher(work.parent, env=env)
+            server = launcher.Launcher(work.parent, env=env, python=readme.python if readme else None)
         rigctl = client() if client is not None else server.client  # type: ignore[union-attr]
         env["PATH"] = f"{rigctl.parent}{os.pathsep}{env['PATH']}"
     try:

@@ -225,10 +225,12 @@ class Launcher:
     wherever ``[sys.executable, "-m", "rigctl"]`` would be, and ``client`` the ``rigctl`` script itself (for a shell's
     PATH); ``env`` is the server's environment (each command runs in its client's); :meth:`close` stops the server."""
 
-    def __init__(self, folder: Path, env: dict[str, str] | None = None) -> None:
+    def __init__(self, folder: Path, env: dict[str, str] | None = None, python: Path | None = None) -> None:
         folder.mkdir(parents=True, exist_ok=True)
         sock = folder / "rigctl.sock"
-        self._server = subprocess.Popen([sys.executable, str(Path(__file__)), "serve", str(sock)], cwd=folder,
+        # (``python``: another environment's interpreter, whose rigctl the commands then run: the guides' README one)
+        self._server = subprocess.Popen([str(python or sys.executable), str(Path(__file__)), "serve", str(sock)],
+                                        cwd=folder,
                                         env=env, stdout=subprocess.PIPE, text=True)
         assert self._server.stdout is not None
         line = self._server.stdout.readline().strip()

@@ -6,8 +6,10 @@ a unit of its own for the parallel run (tests/conftest.py: SPLIT_BY_PARAM)."""
 
 from __future__ import annotations
 
+import os
 import re
 import shlex
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -17,7 +19,8 @@ from click.testing import CliRunner
 from rigctl.cli import main
 
 from .conftest import require_lsl
-from .guides import PAGES, REPO, BlockRun, blocks, run_page
+from .guides import PAGES, REPO, BlockRun, ReadmeEnv, blocks, readme_env, run_page
+from .launcher import Launcher
 
 #: every block not run by its page's test: (page, first words) -> marker; a new one must be added here on purpose
 NOT_RUN = {
@@ -195,6 +198,31 @@ def test_the_config_reference_lists_every_rig_config_key():
     assert named == schema
 
 
+def _shared_root(tmp_path_factory) -> Path:
+    """The folder a run's test workers share (pytest-xdist's workers' temporary folders are beside each other)."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+@pytest.fixture(scope="session")
+def readme(tmp_path_factory) -> ReadmeEnv:
+    """The README's environment the guides run in (issue 79 item 1: a user's, not the test environment): ``python3
+    -m venv`` of this interpreter's Python, the wheel built from the sources, rigctl's dependencies and the guides' own
+    extras, no test extras; built once for the run's workers (tests/guides.py readme_env)."""
+    env = readme_env(_shared_root(tmp_path_factory), getattr(sys, "_base_executable", sys.executable))
+    print(f"README environment: {env.venv} (built in {env.seconds:.0f} s, {env.cpu_s:.0f} CPU-s)")
+    return env
+
+
+@pytest.fixture(scope="session")
+def readme_rigctl(readme, tmp_path_factory):
+    """The ``rigctl`` client of this worker's preloaded server of the README environment's interpreter (its
+    installed rigctl: tests/launcher.py), started once for the worker's guides."""
+    launcher = Launcher(tmp_path_factory.mktemp("readme-launcher"), python=readme.python)
+    yield launcher.client
+    launcher.close()
+
+
 @pytest.mark.slow
 # wall: pages that stream LSL (lab recorder, handheld) and drive `rigctl sim` processes (always paced)
 @pytest.mark.realtime
@@ -209,8 +237,10 @@ def test_guide_runs_as_written(guide, tmp_path, request):
         require_lsl()
     if guide == "realrig":
         request.getfixturevalue("build_tools")
-    # a page's rigctl commands run through this worker's preloaded rigctl (started once for the worker's tests)
-    runs = run_page(page, tmp_path / "work", client=lambda: Path(request.getfixturevalue("rigctl_cmd")[-1]))
+    # in the README's environment (its python, pip and rigctl first on the PATH), a page's rigctl commands through
+    # this worker's preloaded server of that environment (started once for the worker's guides)
+    readme = request.getfixturevalue("readme")
+    runs = run_page(page, tmp_path / "work", readme=readme, client=lambda: request.getfixturevalue("readme_rigctl"))
     print("\n".join(f"{r.seconds:6.1f} s  {r.block.name}" for r in runs))
     check(runs, tmp_path, request)
 
@@ -223,3 +253,63 @@ def test_no_guide_builds_with_the_environments_own_build_tools():
     uses = [f"{b.page}:{b.line}" for page, _ in GUIDES.values() for b in blocks(page)
             if b.lang == "sh" and "pip" in b.text and "--no-build-isolation" in b.text]
     assert not uses, uses
+
+
+def test_the_guides_environment_is_the_readmes(readme, tmp_path):
+    """What a guide's shell finds (tests/guides.py guide_env): the README environment's python with rigctl installed
+    from the wheel (not the checkout, not the test environment), the model rig's C shipped in it, the guides' own
+    extras, and none of the test extras (pytest, the GUI, dask, rigctl serve's FastAPI, mkdocs)."""
+    import json
+    import subprocess
+
+    from .guides import guide_env
+
+    code = ("import importlib.util as u, json, sys, rigctl; from rigctl import firmware; "
+            "from rigctl.simulation import host_build as h; "
+            "print(json.dumps([sys.executable, rigctl.__file__, str(h.shipped('mega', firmware.sources())), "
+            "{m: u.find_spec(m) is not None for m in ('pylsl', 'nir', 'pytest', 'PySide6', 'dask', 'fastapi', "
+            "'mkdocs')}]))")
+    work = tmp_path / "work"  # an empty folder, as a guide's (`python -c` looks in its folder first)
+    work.mkdir()
+    r = subprocess.run(["bash", "-c", f"python -c {shlex.quote(code)}"], env=guide_env(work, readme), cwd=work,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    python, where, shipped, found = json.loads(r.stdout)
+    assert Path(python).parent == readme.bin
+    assert Path(where).is_relative_to(readme.venv) and Path(shipped).is_relative_to(readme.venv), (where, shipped)
+    assert found == {"pylsl": True, "nir": True, "pytest": False, "PySide6": False, "dask": False, "fastapi": False,
+                     "mkdocs": False}, found
+
+
+def _python_312() -> str | None:
+    """A Python 3.12 interpreter on this machine that runs (pyenv's, or ``python3.12`` on the PATH: pyenv's shim there
+    runs only where pyenv selects 3.12), else None."""
+    import glob
+    import shutil
+    import subprocess
+
+    for python in (*sorted(glob.glob(os.path.expanduser("~/.pyenv/versions/3.12*/bin/python3.12"))),
+                   shutil.which("python3.12")):
+        if python and subprocess.run([python, "-c", "import venv"], capture_output=True).returncode == 0:
+            return python
+    return None
+
+
+@pytest.mark.slow
+# wall: the README's `--sim` rig is a `rigctl sim` process (always paced)
+@pytest.mark.realtime
+@pytest.mark.timeout(900)
+def test_the_first_steps_on_python_3_12(tmp_path_factory, tmp_path):
+    """Issue 79 item 1's second Python: the README's first command and the first-recording guide, in a README
+    environment of Python 3.12 (its packages from uv's cache, else the package index: cp312 wheels)."""
+    python = _python_312()
+    if python is None:
+        pytest.skip("no Python 3.12 here (python3.12 on the PATH or ~/.pyenv/versions/3.12*)")
+    # (numba's kernels compiled by the commands that need them: two pages, and the cache's stamp stays 3.11's)
+    env = readme_env(_shared_root(tmp_path_factory), python, name="py312", kernels=False)
+    print(f"README environment (3.12): {env.venv} (built in {env.seconds:.0f} s, {env.cpu_s:.0f} CPU-s)")
+    assert next((env.venv / "lib").glob("python3.12/site-packages/rigctl/simulation/host_lib/mega"), None)
+    for page, check in (GUIDES["readme"], GUIDES["firstrecording"]):
+        work = tmp_path / Path(page).stem / "work"
+        runs = run_page(page, work, readme=env)  # (a server of the page's own when it runs more than two commands)
+        check(runs, work.parent, None)

@@ -20,6 +20,8 @@ import pytest
 
 import rigctl
 
+from .guides import copy_of_the_sources
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -38,19 +40,6 @@ def test_protocols_are_listed_and_found_by_name(tmp_path):
                          timeout=60)
     assert out.returncode == 0, out.stderr
     assert sorted(line.split()[0] for line in out.stdout.splitlines()) == sorted(shipped)
-
-
-#: what is not the project's source (build output, caches, environments, version control): not copied for the build
-_NOT_SOURCE = shutil.ignore_patterns(".git", ".venv*", "build", "dist", "*.egg-info", "__pycache__", ".*_cache",
-                                     ".hypothesis", "site")
-
-
-def copy_of_the_sources(into: Path) -> Path:
-    """A copy of the checkout's sources in ``into/rigctl`` (setuptools writes build/ and *.egg-info beside them: never
-    into the checkout)."""
-    src = into / "rigctl"
-    shutil.copytree(REPO, src, symlinks=True, ignore=_NOT_SOURCE)
-    return src
 
 
 def _installed_files(v: "ReadmeInstall") -> list[str]:
