@@ -327,6 +327,20 @@ def test_the_press_direction_watch_constants(spec_text, h):
         assert h[f"RIGCTL_PRESS_DIR_{name}"] == getattr(wire, f"PRESS_DIR_{name}") == value, name
 
 
+def test_the_back_off_proof_constants(spec_text, h):
+    """Spec 2.11's back-off proof: the same step, force and number of steps in the text, the header and wire.py (the
+    firmware uses them; the campaign's step-after-latch judge allows their blind travel, no more)."""
+    m = re.search(r"proof steps of at most (\d+) um \(BACKOFF_PROOF_UM\) and (\d+) g.*?\(BACKOFF_PROOF_G\).*?At most\s+"
+                  r"(\d+) proof steps \(BACKOFF_PROOF_TRIES\).*?at most (\d+) um", spec_text, re.S)
+    assert m is not None
+    step_um, force_g, tries, blind_um = map(int, m.groups())
+    for name, value in (("UM", step_um), ("G", force_g), ("TRIES", tries)):
+        assert h[f"RIGCTL_BACKOFF_PROOF_{name}"] == getattr(wire, f"BACKOFF_PROOF_{name}") == value, name
+    assert blind_um == tries * step_um
+    from rigctl.simulation.campaign import LATCH_PROOF_MM
+    assert LATCH_PROOF_MM == pytest.approx(blind_um * 1e-3)
+
+
 @pytest.mark.parametrize("table,flags,prefix", [
     ("reset-cause", wire.ResetCause, "RIGCTL_RESET_"),
     ("status-flags", wire.StatusFlag, "RIGCTL_STATUS_"),

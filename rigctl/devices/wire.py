@@ -410,6 +410,13 @@ PRESS_DIR_STEPS = 16
 PRESS_DIR_PROOF_READINGS = 2
 PRESS_DIR_G = 8
 HX711_CADENCE_PCT = 50
+#: a back-off under load proves its way first (spec 2.11): steps of at most BACKOFF_PROOF_UM (and BACKOFF_PROOF_G of
+#: spring force at the contact's stiffness), each held until the HX711 settled on it, at most BACKOFF_PROOF_TRIES of
+#: them: the blind travel towards the sensor on a reversed motor is at most TRIES x UM (32 um; 160 g at the stiffest
+#: contact accepted, where the first step already shows 40 g)
+BACKOFF_PROOF_UM = 8
+BACKOFF_PROOF_G = 40
+BACKOFF_PROOF_TRIES = 4
 HOME_CREEP_UM = 12
 HOME_PROOF_FALL_G = 50
 HOME_RISE_G = 30

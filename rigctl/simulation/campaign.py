@@ -15,7 +15,8 @@ the firmware read; :func:`read_truth_log` takes them from a truth log file):
 
 - ``over-force``: the true force stays <= 1.1 x FORCE_LIMIT_G (:data:`FORCE_BOUND_G`, 1650 g);
 - ``step-after-latch``: once the controller latched a fault, the actuator takes no step towards the sensor
-  (:data:`LATCH_STEP_MM` of slack for the step in flight, :data:`LATCH_GRACE_S` after the latch);
+  (:data:`LATCH_STEP_MM` of slack for the step in flight, :data:`LATCH_GRACE_S` after the latch) beyond its
+  back-off's proof steps (:data:`LATCH_PROOF_MM` in all, spec 2.11);
 - ``trial-without-contact``: a trial the host recorded had the sensor in contact the whole time the drum ran for
   it (true force >= :data:`CONTACT_G`).
 
@@ -38,7 +39,8 @@ from rigctl.core.faults import FAULTS, INSTANT_FAULTS, FaultSpec
 from rigctl.devices import wire
 
 __all__ = ["CAMPAIGN_FAULTS", "CAMPAIGN_FAULTS_V1", "Case",
-           "COLUMNS", "read_truth_log", "MOMENTS", "FORCE_BOUND_G", "CONTACT_G", "LATCH_STEP_MM", "LATCH_GRACE_S", "draw_case",
+           "COLUMNS", "read_truth_log", "MOMENTS", "FORCE_BOUND_G", "CONTACT_G", "LATCH_STEP_MM", "LATCH_GRACE_S",
+           "LATCH_PROOF_MM", "draw_case",
            "check_invariants", "ModelTruth", "Violation"]
 
 #: the truth log's columns the invariants judge, in this order
@@ -54,6 +56,13 @@ CONTACT_G = 5.0
 LATCH_STEP_MM = 0.01
 #: the truth rows within this long after the latch are not judged, s (the latch's own control period)
 LATCH_GRACE_S = 0.005
+#: the travel towards the sensor a back-off's proof may take blind after a latch, mm (spec 2.11: at most
+#: BACKOFF_PROOF_TRIES steps of BACKOFF_PROOF_UM, each <= BACKOFF_PROOF_G of spring force: a reversed motor's proof steps
+#: on a soft contact, which shows a step's force only after several; fresh seed 741098 judged 15 um of them a step).
+#: The truth cannot tell a proof step from any other motion: this much travel towards the sensor after a latch is
+#: allowed whatever moved it, more is a step after the latch (firmware 1.4's proof step at full speed for a period,
+#: 45-70 um on a reversed motor, stays one)
+LATCH_PROOF_MM = wire.BACKOFF_PROOF_TRIES * wire.BACKOFF_PROOF_UM * 1e-3
 #: the range of each valued fault's drawn value (contact-stiffness: the plate swapped for one of 0.1-5 kg/mm, the
 #: whole range a rig config accepts, rigctl.core.drum.CONTACT_STIFFNESS_MAX_G_PER_MM; home-switch: 0 open, 1 closed)
 _VALUE_DRAWS: dict[str, tuple[float, float, bool]] = {  # name -> (low, high, log-uniform)
@@ -182,7 +191,7 @@ def check_invariants(truth: np.ndarray, *, latches: Sequence[tuple[float, float 
         after = np.nonzero((t > latch_s + LATCH_GRACE_S) & (t <= (math.inf if end_s is None else end_s)))[0]
         if len(after):
             j = after[int(np.argmax(act[after]))]
-            if act[j] > at_latch + LATCH_STEP_MM:
+            if act[j] > at_latch + max(LATCH_STEP_MM, LATCH_PROOF_MM):
                 out.append(Violation("step-after-latch", float(t[j]), f"the actuator moved {act[j] - at_latch:.3f} mm "
                                      f"towards the sensor {t[j] - latch_s:.2f} s after the latch at {latch_s:.2f} s"))
                 break

@@ -16,7 +16,7 @@ import pytest
 
 from rigctl.core.drum import CONTACT_STIFFNESS_MAX_G_PER_MM
 from rigctl.core.faults import FAULTS, INSTANT_FAULTS
-from rigctl.simulation.campaign import FORCE_BOUND_G, MOMENTS, check_invariants, draw_case
+from rigctl.simulation.campaign import FORCE_BOUND_G, LATCH_PROOF_MM, MOMENTS, check_invariants, draw_case
 
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_fault_campaign.py"
 #: the CI slice on the model rig: seeds 5500.. (~0.45 CPU-s a case; tests/firmware/test_fw_fault_campaign.py: simavr's)
@@ -30,7 +30,8 @@ def _truth(rows):
 
 def test_the_invariants_fail_on_each_kind_of_violation():
     """Each invariant judged on truth rows (time_s, true_force_g, actuator_mm, drum_speed_mm_s): a clean run passes;
-    1651 g fails over-force; the actuator 0.02 mm further towards the sensor after a latch fails (not before it, not
+    1651 g fails over-force; the actuator 0.1 mm (or 33 um: more than a back-off's proof steps) further towards the
+    sensor after a latch fails, 31 um does not (not before it, not
     after the latch was acknowledged, not within its own control period); a recorded trial whose drum ran while the
     true force was 0 fails trial-without-contact (a trial the drum did not run for is not judged)."""
     clean = _truth([(0.0, 0.0, 0.0, 0.0), (1.0, 800.0, 5.0, 0.0), (2.0, 1000.0, 5.1, 80.0), (3.0, 990.0, 5.1, 80.0),
@@ -43,6 +44,12 @@ def test_the_invariants_fail_on_each_kind_of_violation():
     assert check_invariants(clean, latches=[(1.5, None)])[0].kind == "step-after-latch"
     assert check_invariants(clean, latches=[(1.5, 1.9)]) == []  # acknowledged before the step
     assert check_invariants(clean, latches=[(1.998, None)]) == []  # the step within the latch's own period
+    proof = clean.copy()  # a back-off's proof steps on a reversed motor (spec 2.11): at most LATCH_PROOF_MM, 32 um
+    proof[2, 2] = proof[3, 2] = 5.0 + LATCH_PROOF_MM - 0.001
+    assert check_invariants(proof, latches=[(1.5, None)]) == []
+    proof[3, 2] = 5.0 + LATCH_PROOF_MM + 0.001
+    (v,) = check_invariants(proof, latches=[(1.5, None)])
+    assert v.kind == "step-after-latch" and v.time_s == 3.0 and "0.033 mm" in v.detail
     walked_off = clean.copy()
     walked_off[3, 1] = 0.0
     (v,) = check_invariants(walked_off, trials=[(1.5, 3.2, 80.0)])

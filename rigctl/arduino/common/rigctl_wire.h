@@ -388,6 +388,12 @@
 #define RIGCTL_SCALE_CHECK_PCT             15
 #define RIGCTL_HX711_STUCK_READINGS        6
 #define RIGCTL_HX711_CADENCE_PCT           50
+/* 2.11 a back-off under load proves its way first: steps of at most BACKOFF_PROOF_UM (and BACKOFF_PROOF_G of spring
+ * force at the contact's stiffness), each held until the HX711 has settled on it, at most BACKOFF_PROOF_TRIES of them:
+ * its blind travel towards the sensor on a reversed motor is at most TRIES x UM */
+#define RIGCTL_BACKOFF_PROOF_UM            8
+#define RIGCTL_BACKOFF_PROOF_G             40
+#define RIGCTL_BACKOFF_PROOF_TRIES         4
 #define RIGCTL_HOME_CREEP_UM               12
 #define RIGCTL_HOME_PROOF_FALL_G           50
 #define RIGCTL_HOME_RISE_G                 30

@@ -134,10 +134,10 @@ static uint8_t home_overloaded(const ctl_t *c)
  * towards the sensor is one step (<= BACKOFF_PROOF_UM, the campaign's step-after-latch slack) on a contact stiff enough
  * to show it, whatever the HX711's rate. After BACKOFF_PROOF_TRIES steps with neither (a contact so soft that the
  * travel carries no force) it goes on, watched. Under no load (below BACKOFF_LOAD_G) it runs at once, watched. */
-#define BACKOFF_PROOF_G 40.0f
-#define BACKOFF_PROOF_UM 8.0f
+#define BACKOFF_PROOF_G ((float)RIGCTL_BACKOFF_PROOF_G)
+#define BACKOFF_PROOF_UM ((float)RIGCTL_BACKOFF_PROOF_UM)
 #define BACKOFF_MIN_G 1.0f
-#define BACKOFF_PROOF_TRIES 4u
+#define BACKOFF_PROOF_TRIES ((uint8_t)RIGCTL_BACKOFF_PROOF_TRIES)
 #define BACKOFF_LOAD_G 30.0f
 enum { BACKOFF_FREE = 0, BACKOFF_REST, BACKOFF_STEP, BACKOFF_SETTLE };
 /* the power-up tare's agreement with the stored zero (ctl_loadcell), g */
