@@ -33,6 +33,15 @@ def axis_layers(layout: SensorLayout) -> str:
     return ", ".join(parts)
 
 
+
+def _stiffness_words(loadcell: dict) -> str:
+    """What the calibration stored of the contact (docs/wire-protocol.md 2.12): every probe's stiffness is compared
+    with it (LOADCELL_SCALE outside 0.87-1.15), or none is stored and the reading's scale goes unchecked."""
+    k = float(loadcell.get("contact_stiffness_g_per_mm") or 0.0)
+    if k > 0:
+        return f"contact {k:,.0f} g/mm (each press's probe is checked against it)"
+    return "no contact stiffness stored: the scale is not checked at each press (calibrate with the plate mounted)"
+
 class CalibrationTab(QtWidgets.QWidget):
     """The calibration tab; ``main`` is the :class:`rigctl_gui.app.MainWindow`."""
 
@@ -207,7 +216,7 @@ class CalibrationTab(QtWidgets.QWidget):
         lc = cfg.get("loadcell")
         self.loadcell_info.setText(
             f"{lc['counts_per_g']:.2f} counts/g from a {lc['mass_g']:g} g mass (check reading "
-            f"{lc.get('check_force_g', float('nan')):.1f} g), {lc.get('calibrated_utc', '')}"
+            f"{lc.get('check_force_g', float('nan')):.1f} g), {lc.get('calibrated_utc', '')}; " + _stiffness_words(lc)
             if lc else "not calibrated (the controller's EEPROM scale is used)"
         )
         tn = cfg.get("taxel_normalisation")

@@ -331,6 +331,14 @@ def test_calibration_tab_per_taxel_normalisation_follows_the_layout(qapp, tmp_pa
     tab.set_layout(GRID_4X4)
     tab.show_config()
     assert len(tab.norm_bars.opts["x"]) == 16 and "0-4095" in tab.norm_info.text()
+    # the load cell's calibration says whether the contact's stiffness is stored (each probe checked against it)
+    loadcell = {"counts_per_g": 420.0, "scale_x100": 42000, "mass_g": 500.0, "check_force_g": 500.2}
+    update_rig_config(cfg, loadcell=loadcell)
+    tab.show_config()
+    assert "no contact stiffness stored: the scale is not checked" in tab.loadcell_info.text()
+    update_rig_config(cfg, loadcell={**loadcell, "contact_stiffness_g_per_mm": 1234.0})
+    tab.show_config()
+    assert "contact 1,234 g/mm (each press's probe is checked against it)" in tab.loadcell_info.text()
     tab.deleteLater()
 
 
