@@ -1,8 +1,8 @@
 """Issue 39 item 2 under simavr: a STOP or a silent host stops the press at once (the firmware's step timer is
 retimed, never left to fire a pending step towards the sensor), and the true force (the harness's spring) falls below
 100 g within 1 s. Since issue 75 the back-off under load proves its way before it runs (controller.c backoff_begin:
-it holds while the drum stops and the HX711 settles, 5 readings, then one short step away, judged on the settled
-reading): its first step away comes within that hold, its steps at speed after. Timed on the harness's pins and the
+it holds while the drum stops and the HX711 settles, then averages 4 readings, then one short step away, judged on
+the mean of 4 settled readings): its first step away comes within that hold, its steps at speed after. Timed on the harness's pins and the
 request's arrival (``RX``/``ASTEP``), both in simulated time."""
 
 from __future__ import annotations
@@ -68,9 +68,10 @@ def _wait_sim(rig, t_s: float) -> None:
     rig._wait_telemetry(t_s, 10.0)
 
 
-#: the longest the back-off holds before its first step away: the drum at rest and the HX711 settled (5 readings at
-#: 80 SPS, 62.5 ms) plus a reading (controller.c backoff_begin)
-PROOF_HOLD_S = 6 * 0.0125 + 0.005
+#: the longest the back-off holds before its first step away: the drum at rest, the HX711 settled (4 readings at 80
+#: SPS) and 4 more averaged for the load it is judged against (controller.c backoff_reading: 8 readings, 100 ms) plus
+#: a reading
+PROOF_HOLD_S = 9 * 0.0125 + 0.005
 
 
 def _check_backoff(rig, t_from: float, t_to: float) -> tuple[float, list[tuple[float, int]]]:

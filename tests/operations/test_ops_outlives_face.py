@@ -64,8 +64,8 @@ SEQUENCES = int(os.environ.get("RIGCTL_OUTLIVES_SEQUENCES", "3"))
 STEPS = int(os.environ.get("RIGCTL_OUTLIVES_STEPS", "8"))
 TOKEN = "outlives-face-token"
 
-#: after a latch, how long the rig may take to come to rest (the drum's stop ramp, the actuator backing off), s; after
-#: a kill -9 the controller's watchdog (1 s on hardware) comes first
+#: after a latch, how long the rig may take to come to rest (the drum's stop ramp, the actuator backing off), s of the
+#: rig's time; after a kill -9 the controller's watchdog (1 s on hardware) comes first
 SETTLE_S = {"estop": 0.5, "reset": 0.5, "watchdog": 2.0, "open": 2.0}
 #: what counts as motion on the truth log: the actuator towards the sensor by more than this (mm), the force rising by
 #: more than this (g) over the rest of the window, the drum turning faster than this (mm/s)
@@ -414,9 +414,13 @@ class OutlivesFace(RuleBasedStateMachine):
 
     def judge(self, t: dict[str, np.ndarray]) -> None:
         for latch in self.latches:
-            begin = latch.wall_s + SETTLE_S[latch.kind]
-            end = latch.end_wall_s if latch.end_wall_s is not None else t["wall_time_s"][-1]
-            inside = (t["wall_time_s"] >= begin) & (t["wall_time_s"] < end)
+            # the settling is the rig's (its stop ramp, its back-off, its watchdog: rig time); a face's latch and its
+            # end are moments of the wall, taken onto the rig's clock (under load the rig runs slower than the wall:
+            # a watchdog's back-off was still under way 2 s of wall after a kill -9 at load ~12, and judged an open's)
+            begin = float(np.interp(latch.wall_s, t["wall_time_s"], t["time_s"])) + SETTLE_S[latch.kind]
+            end_wall = latch.end_wall_s if latch.end_wall_s is not None else t["wall_time_s"][-1]
+            end = float(np.interp(end_wall, t["wall_time_s"], t["time_s"]))
+            inside = (t["time_s"] >= begin) & (t["time_s"] < end)
             if inside.sum() < 2:
                 continue
             act, force, speed = t["actuator_mm"][inside], t["true_force_g"][inside], t["drum_speed_mm_s"][inside]

@@ -314,7 +314,7 @@ static void test_controller()
     run_ms(c, p, now, 13);
     CHECK(c.state == RIGCTL_STATE_FAULT && (c.faults & RIGCTL_FAULT_FORCE_LIMIT) && c.act_vel_mm_s <= 0);
     double x_latch = p.x_mm;
-    run_ms(c, p, now, 250);
+    run_ms(c, p, now, 400); // at rest, settled and 4 readings averaged, one step, settled and 4 more: ~210 ms at 80 SPS
     CHECK(p.x_mm < x_latch - 0.1 && c.act_vel_mm_s < 0); // proven: backing off at speed
     CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT)); // condition persists
     p.extra_g = 0;

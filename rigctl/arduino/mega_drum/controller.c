@@ -136,7 +136,12 @@ static uint8_t home_overloaded(const ctl_t *c)
  * travel carries no force) it goes on, watched. Under no load (below BACKOFF_LOAD_G) it runs at once, watched. */
 #define BACKOFF_PROOF_G ((float)RIGCTL_BACKOFF_PROOF_G)
 #define BACKOFF_PROOF_UM ((float)RIGCTL_BACKOFF_PROOF_UM)
-#define BACKOFF_MIN_G 1.0f
+/* the smallest fall (or rise) that decides, g, on the mean of BACKOFF_AVG_READINGS settled readings before and after:
+ * 3 g is 5 sd of that difference at the model's 0.8 g a reading (30 sd at a real HX711's ~0.1 g). 1 g on single
+ * readings decided on noise: a step of 2.5 um at 250 g/mm (0.6 g) read as a rise latched ACTUATOR_DIRECTION on a good
+ * motor in about one back-off in six (test_drum_conformance's end-of-travel case, the CI run under load) */
+#define BACKOFF_MIN_G 3.0f
+#define BACKOFF_AVG_READINGS 4u
 #define BACKOFF_PROOF_TRIES ((uint8_t)RIGCTL_BACKOFF_PROOF_TRIES)
 #define BACKOFF_LOAD_G 30.0f
 enum { BACKOFF_FREE = 0, BACKOFF_REST, BACKOFF_STEP, BACKOFF_SETTLE };
@@ -157,6 +162,7 @@ static void backoff_begin(ctl_t *c, float k_meas_g_per_step)
     c->backoff_phase = BACKOFF_FREE;
     c->backoff_tries = 0;
     c->backoff_readings = 0;
+    c->backoff_sum_g = 0.0f;
     if (!c->have_reading || !direction_zero(c, &zero) || load_g(c, c->loadcell_raw, zero) < BACKOFF_LOAD_G) return;
     k = k_meas_g_per_step > 0.0f ? k_meas_g_per_step : (float)ctl_stiffness_max(c) / spmm;
     c->backoff_step_steps = (int32_t)(BACKOFF_PROOF_G / k);
@@ -908,6 +914,7 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
             c->act_vel_mm_s = 0.0f; /* the proof step is done: hold until the HX711 has settled on it */
             c->backoff_phase = BACKOFF_SETTLE;
             c->backoff_readings = 0;
+            c->backoff_sum_g = 0.0f;
         } else {
             c->act_vel_mm_s = backoff_speed(c);
         }
@@ -1017,6 +1024,37 @@ static uint8_t press_dir_watch(ctl_t *c, float f)
     return 0;
 }
 
+/* a reading while the back-off holds still to prove its way (spec 2.11): the mean of BACKOFF_AVG_READINGS settled
+ * readings at rest is what the steps are judged against (d0); after each proof step the mean of as many settled
+ * readings decides: risen by the fall it proves, ACTUATOR_DIRECTION; fallen as much (or the tries spent), the way is
+ * proven and it goes on at speed, watched; else one more step */
+static void backoff_reading(ctl_t *c, int32_t raw)
+{
+    int32_t zero;
+    float d;
+    if (!direction_zero(c, &zero)) return;
+    if (c->backoff_phase == BACKOFF_REST && (c->drum_cmd_mm_s > 0.0f || c->drum_actual_mm_s > 0.0f)) {
+        c->backoff_readings = 0; /* the runout's ripple: wait for the drum at rest */
+        c->backoff_sum_g = 0.0f;
+        return;
+    }
+    if (++c->backoff_readings <= RIGCTL_HX711_RATE_PERIODS) return; /* the HX711 settling on the step */
+    c->backoff_sum_g += load_g(c, raw, zero);
+    if (c->backoff_readings < RIGCTL_HX711_RATE_PERIODS + BACKOFF_AVG_READINGS) return;
+    d = c->backoff_sum_g / (float)BACKOFF_AVG_READINGS;
+    if (c->backoff_phase == BACKOFF_REST) {
+        c->backoff_d0_g = d; /* at rest, settled: what the steps are judged against */
+        backoff_step(c);
+    } else if (d >= c->backoff_d0_g + c->backoff_fall_g) {
+        direction_fault(c); /* it pressed: stop where it stands, not homed (HOME creeps and proves) */
+    } else if (d <= c->backoff_d0_g - c->backoff_fall_g || c->backoff_tries >= BACKOFF_PROOF_TRIES) {
+        c->backoff_phase = BACKOFF_FREE; /* the load fell: the way is proven now; watched from here */
+        move_watch_start(c, 0);
+    } else {
+        backoff_step(c); /* no clear change yet (a soft contact, backlash): one more step */
+    }
+}
+
 void ctl_loadcell(ctl_t *c, int32_t raw)
 {
     float f, rise;
@@ -1043,23 +1081,8 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
     c->loadcell_raw = raw;
     c->have_reading = 1;
     boot_load_check(c, raw);
-    if (c->act_mode == ACT_MODE_RETRACT && c->backoff_phase == BACKOFF_REST && direction_zero(c, &zero)) {
-        if (c->drum_cmd_mm_s > 0.0f || c->drum_actual_mm_s > 0.0f) c->backoff_readings = 0; /* the runout's ripple */
-        else if (++c->backoff_readings > RIGCTL_HX711_RATE_PERIODS) {
-            c->backoff_d0_g = load_g(c, raw, zero); /* at rest, settled: what the steps are judged against */
-            backoff_step(c);
-        }
-    } else if (c->act_mode == ACT_MODE_RETRACT && c->backoff_phase == BACKOFF_SETTLE &&
-               ++c->backoff_readings > RIGCTL_HX711_RATE_PERIODS && direction_zero(c, &zero)) {
-        float d = load_g(c, raw, zero);
-        if (d >= c->backoff_d0_g + c->backoff_fall_g) {
-            direction_fault(c); /* it pressed: stop where it stands, not homed (HOME creeps and proves) */
-        } else if (d <= c->backoff_d0_g - c->backoff_fall_g || c->backoff_tries >= BACKOFF_PROOF_TRIES) {
-            c->backoff_phase = BACKOFF_FREE; /* the load fell: the way is proven now; watched from here */
-            move_watch_start(c, 0);
-        } else {
-            backoff_step(c); /* no clear change yet (a soft contact, backlash): one more step */
-        }
+    if (c->act_mode == ACT_MODE_RETRACT && (c->backoff_phase == BACKOFF_REST || c->backoff_phase == BACKOFF_SETTLE)) {
+        backoff_reading(c, raw);
     }
     if (c->act_mode == ACT_MODE_HOMING || c->act_mode == ACT_MODE_RETRACT) {
         /* moving home or backing off only takes force off the cell: a load (|raw - zero|, sign-free: a reversed

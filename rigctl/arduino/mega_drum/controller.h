@@ -105,6 +105,7 @@ typedef struct {
     int32_t backoff_step_steps;
     float backoff_d0_g;        /* the load (|raw - zero|, g) at rest before the first step */
     float backoff_fall_g;      /* the fall that proves the way (and the rise that disproves it), g */
+    float backoff_sum_g;       /* the settled readings' loads the decision averages (BACKOFF_AVG_READINGS), g */
     /* time */
     uint32_t now_ms;
     uint32_t last_request_ms;
