@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
 
 from click.testing import CliRunner
 
@@ -22,6 +25,33 @@ from rigctl.storage.session import open_session
 
 PROTOCOL = ('name = "ack_open"\ntextures = ["A"]\nspeeds_mm_s = [80]\nforces_g = [200]\n'
             'trials_per_condition = 1\nduration_s = 0.3\n[settle]\nsettle_time_ms = 50\n')
+
+
+@contextmanager
+def _rig(tmp_path: Path, monkeypatch, state: str) -> Iterator[tuple]:
+    """A simulated rig on ptys (its controller outlives the faces), the rig config and the rig log (``state``: the
+    XDG state folder) in ``tmp_path``, and :data:`PROTOCOL`'s file: ``(sim, its RigSource, the protocol's path)``."""
+    from rigctl.simulation.rig import SimulatedRig
+
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / state))
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
+    proto = tmp_path / "p.toml"
+    proto.write_text(PROTOCOL)
+    with SimulatedRig(port_dir=tmp_path / "ports") as sim:
+        yield sim, RigSource("hardware", drum_port=sim.drum_port, taxel_port=sim.taxel_port), proto
+
+
+def _face(source: RigSource, tmp_path: Path):
+    """A face opening the rig as every face does here: HOME unless a fault is latched, the rig config in tmp_path."""
+    return open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json")
+
+
+def _acquire(sim, proto: Path, out: Path):
+    """`rigctl acquire` of ``proto`` on the simulated rig's ports into ``out`` (click's runner: its exit code and
+    output)."""
+    args = ["acquire", str(proto), "--drum-port", sim.drum_port, "--taxel-port", sim.taxel_port, "--plates", "auto",
+            "--out", str(out), "--quiet"]
+    return CliRunner().invoke(cli, args)
 
 
 def _until(cond, what: str, timeout_s: float = 60.0) -> None:
@@ -136,36 +166,28 @@ def test_a_reset_one_face_saw_is_latched_for_the_next_until_acknowledged(tmp_pat
     a face that closes without acknowledging leaves it for every later face (held, nothing moves; `acquire` exits 1
     naming it), until one acknowledges; the face after that opens unlatched."""
     from rigctl.acquisition.safety import LatchedFault
-    from rigctl.simulation.rig import SimulatedRig
 
-    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
-    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
-    proto = tmp_path / "p.toml"
-    proto.write_text(PROTOCOL)
-    with SimulatedRig(port_dir=tmp_path / "ports") as sim:
-        source = RigSource("hardware", drum_port=sim.drum_port, taxel_port=sim.taxel_port)
-        with open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json") as first:
+    with _rig(tmp_path, monkeypatch, "state") as (sim, source, proto):
+        with _face(source, tmp_path) as first:
             first.press(200.0)
             sim.mega.reset()  # a reset pulse under load (brown-out, the reset line)
             _until(lambda: first.status() is not None and first.latch is not None, "the first face's reset latch")
             assert first.latch.cause == "reset"
         # the next face: NOT_HOMED, nothing latched in the controller, and still the reset latch
-        with open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json") as second:
+        with _face(source, tmp_path) as second:
             assert second.latch is not None and second.latch.cause == "reset", second.latch
             try:
                 second.press(200.0)
                 raise AssertionError("pressed under a latch")
             except LatchedFault:
                 pass
-        args = ["acquire", str(proto), "--drum-port", sim.drum_port, "--taxel-port", sim.taxel_port, "--plates",
-                "auto", "--out", str(tmp_path / "s.h5"), "--quiet"]
         act = sim.model.actuator_mm
-        refused = CliRunner().invoke(cli, args)
+        refused = _acquire(sim, proto, tmp_path / "s.h5")
         assert refused.exit_code == 1 and "reset" in refused.output, refused.output
         assert sim.model.actuator_mm == act and not (tmp_path / "s.h5").exists()
-        with open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json") as third:
+        with _face(source, tmp_path) as third:
             third.acknowledge("reset checked: power and reset line", by="tester")
-        with open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json") as fourth:
+        with _face(source, tmp_path) as fourth:
             assert fourth.latch is None
 
 
@@ -174,33 +196,24 @@ def test_a_reset_under_load_no_face_saw_is_latched_by_the_controller_for_the_nex
     FAULT_BITS_HI), so a face that never saw the reset finds the latch: here the next face runs with a rig log of its
     own (another computer; the face that pressed is gone), and `rigctl acquire` there exits 1 naming it, nothing
     moved. Its acknowledgement moves nothing (reset is not start); the face after it opens unlatched."""
-    from rigctl.simulation.rig import SimulatedRig
-
-    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
-    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state-a"))
-    proto = tmp_path / "p.toml"
-    proto.write_text(PROTOCOL)
-    with SimulatedRig(port_dir=tmp_path / "ports") as sim:
-        source = RigSource("hardware", drum_port=sim.drum_port, taxel_port=sim.taxel_port)
-        with open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json") as first:
+    with _rig(tmp_path, monkeypatch, "state-a") as (sim, source, proto):
+        with _face(source, tmp_path) as first:
             first.press(200.0)
             sim.mega.reset()  # a reset pulse under load (brown-out, the reset line, the next port opening's DTR)
             pressed_mm, pressed_g = sim.model.actuator_mm, sim.model.contact_force_g
         assert pressed_g > 100.0  # still pressing: the reset left the actuator where it stood
         assert Fault.RESET in sim.mega.faults and sim.mega.state == DrumState.FAULT
         monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state-b"))  # a face whose rig log never saw it
-        args = ["acquire", str(proto), "--drum-port", sim.drum_port, "--taxel-port", sim.taxel_port, "--plates",
-                "auto", "--out", str(tmp_path / "s.h5"), "--quiet"]
-        refused = CliRunner().invoke(cli, args)
+        refused = _acquire(sim, proto, tmp_path / "s.h5")
         assert refused.exit_code == 1 and "reset" in refused.output, refused.output
         assert "Traceback" not in refused.output and not (tmp_path / "s.h5").exists()
         assert sim.model.actuator_mm == pressed_mm
-        with open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json") as second:
+        with _face(source, tmp_path) as second:
             assert second.latch is not None and second.latch.cause == "reset", second.latch
             assert Fault.RESET in Fault(second.latch.faults)
             second.acknowledge("reset checked: the sensor is free", by="tester")
             second.drum.clock.sleep(1.0)
             assert sim.model.actuator_mm == pressed_mm  # the acknowledgement moved nothing
             assert sim.mega.state == DrumState.NOT_HOMED
-        with open_control(source, home="unless_faulted", host_config_path=tmp_path / "rig.json") as third:
+        with _face(source, tmp_path) as third:
             assert third.latch is None
