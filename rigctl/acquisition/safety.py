@@ -88,7 +88,9 @@ CAUSES: dict[str, tuple[str, str]] = {
     "contact-lost": ("contact lost while the force held", "check the load cell and the HX711: the reading did not "
                                                           "follow the contact" + _CRUSH),
     "loadcell-scale": ("the reading's scale disagrees with the stiffness stored at calibration",
-                       "check the cell and recalibrate with the reference mass (the GUI's calibration tab)" + _CRUSH),
+                       "a plate or mount changed since the calibration, the actuator losing steps (its coupling), "
+                       "a frozen reading or the cell's scale: check them in that order, then recalibrate with the "
+                       "reference mass (the GUI's calibration tab)" + _CRUSH),
 }
 
 #: the cause of each controller fault bit (the first that is set names the latch)

@@ -310,14 +310,18 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "the start after it HOMEs from an unknown position (creeping, its way proven)."),
     Fault.LOADCELL_SCALE: FaultWords(
         "load-cell scale disagrees with the calibration",
-        "the contact's stiffness the press's probe measured disagrees with the one stored with the calibration by "
-        "more than SCALE_CHECK_PCT: the reading's scale is wrong",
-        "the reading's scale disagrees with the stiffness stored at calibration: the probe measured the contact "
-        "through the load cell at a stiffness more than 15 % off the one stored when the scale was verified, so the "
-        "reading (and the force limit) is off by as much. It backed off before pressing. Check the cell and recalibrate "
-        "with the reference mass (the GUI's calibration tab, which stores the contact's stiffness again); if the "
-        "sensor, its mount or a plate of another material was changed since, that recalibration stores the new "
-        "contact. Then CLEAR_FAULT."),
+        "the contact's stiffness the press's probe measured (the reading's rise over the actuator's step count) "
+        "disagrees with the one stored with the calibration by more than SCALE_CHECK_PCT: the plate or mount changed, "
+        "the actuator lost steps, the reading did not follow the press, or the reading's scale is wrong",
+        "the probe measured the contact's stiffness (the reading's rise over the steps the actuator was sent) more than "
+        "15 % off the one stored when the scale was verified, and backed off before pressing. In the order a lab meets "
+        "them: a plate, sensor or mount changed since the calibration (a contact of another stiffness); the actuator "
+        "losing steps (check the coupling's set screws and that the lead screw turns freely: a slipping coupling or a "
+        "stalling motor moves less than it counts); the reading not following the press (watch FORCE_G while pressing "
+        "the cell by hand: a value that never changes is a frozen HX711 or its DOUT/SCK wires); the cell's scale "
+        "itself (drift, a loose excitation lead, a wrong calibration mass), which makes the reading and the force "
+        "limit off by as much. Fix what you found, then recalibrate with the reference mass (the GUI's calibration "
+        "tab, which stores the contact's stiffness again). Then CLEAR_FAULT."),
 }
 
 
