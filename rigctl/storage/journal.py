@@ -353,7 +353,33 @@ SPARE_TAIL_MAX_BYTES = 128 << 20
 _SPARE_TAILS: list[bytearray] = []
 
 
-class OverlayFile(io.RawIOBase):
+class RandomAccessFile(io.RawIOBase):
+    """The base of the file objects rigctl hands h5py (:class:`OverlayFile`,
+    :class:`rigctl.storage.outputs.GuardedFile`): readable, writable and seekable, its position ``_pos`` and size ``_size`` in bytes kept by the subclass, which
+    gives ``readinto``, ``write`` and ``truncate``."""
+
+    _pos: int
+    _size: int
+
+    def readable(self) -> bool:
+        return True
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self._pos
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        """Moves to ``offset`` bytes from the start (``whence`` 0), the position (1) or the end (2)."""
+        self._pos = offset if whence == 0 else self._pos + offset if whence == 1 else self._size + offset
+        return self._pos
+
+
+class OverlayFile(RandomAccessFile):
     """A file object for h5py (``h5py.File(OverlayFile(path), "r+")``) that keeps every write in memory until
     :meth:`commit`. Takes an exclusive ``flock`` on the file for its lifetime (other rigctl writers wait, HDF5
     readers holding the file make it wait up to ``wait_s``)."""
@@ -382,28 +408,7 @@ class OverlayFile(io.RawIOBase):
         self._zero_from = self._base_size  # after a truncation below _base_size: disk bytes from here read as 0
         self._pos = 0
 
-    # -- io.RawIOBase ---------------------------------------------------------------------------------------------
-    def readable(self) -> bool:
-        return True
-
-    def writable(self) -> bool:
-        return True
-
-    def seekable(self) -> bool:
-        return True
-
-    def tell(self) -> int:
-        return self._pos
-
-    def seek(self, offset: int, whence: int = 0) -> int:
-        if whence == 0:
-            self._pos = offset
-        elif whence == 1:
-            self._pos += offset
-        else:
-            self._pos = self._size + offset
-        return self._pos
-
+    # -- io.RawIOBase (readinto, write, truncate; the rest: RandomAccessFile) ------------------------------------
     def readinto(self, b: Any) -> int:
         n = max(0, min(len(b), self._size - self._pos))
         if n == 0:

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import io
 import os
 import stat
 import tempfile
@@ -478,7 +477,7 @@ def check_output(path: str | os.PathLike[str], *, option: str = "--out", overwri
 # ----------------------------------------------------------------------------------------------------------------
 # Writing
 # ----------------------------------------------------------------------------------------------------------------
-class GuardedFile(io.RawIOBase):
+class GuardedFile(journal.RandomAccessFile):
     """A file object for h5py (``h5py.File(GuardedFile(path), "w")``) whose writes never fail in HDF5's eyes.
 
     Bytes go straight to the file (``os.pwrite``) until the disk refuses one (ENOSPC, EDQUOT, EFBIG, EIO, ...);
@@ -502,23 +501,7 @@ class GuardedFile(io.RawIOBase):
         self.error: OSError | None = None
         self._pages: dict[int, bytearray] = {}
 
-    # -- io.RawIOBase ---------------------------------------------------------------------------------------------
-    def readable(self) -> bool:
-        return True
-
-    def writable(self) -> bool:
-        return True
-
-    def seekable(self) -> bool:
-        return True
-
-    def tell(self) -> int:
-        return self._pos
-
-    def seek(self, offset: int, whence: int = 0) -> int:
-        self._pos = offset if whence == 0 else self._pos + offset if whence == 1 else self._size + offset
-        return self._pos
-
+    # -- io.RawIOBase (readinto, write, truncate; the rest: journal.RandomAccessFile) ----------------------------
     def _pread(self, n: int, at: int) -> bytes:
         n = max(0, min(n, self._disk_size - at))
         return os.pread(self._fd, n, at) if n else b""
