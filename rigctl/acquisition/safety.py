@@ -91,6 +91,9 @@ CAUSES: dict[str, tuple[str, str]] = {
                        "a plate or mount changed since the calibration, the actuator losing steps (its coupling), "
                        "a frozen reading or the cell's scale: check them in that order, then recalibrate with the "
                        "reference mass (the GUI's calibration tab)" + _CRUSH),
+    "loadcell-zero": ("the load cell read a force with nothing pressing",
+                      "remove anything resting on the sensor or the actuator, check the cell's mount, its cable and "
+                      "the HX711's wires (its zero moved); the start HOMEs and tares again" + _CRUSH),
 }
 
 #: the cause of each controller fault bit (the first that is set names the latch)
@@ -102,6 +105,7 @@ _FAULT_CAUSES: tuple[tuple[Fault, str], ...] = (
     (Fault.DRUM_SLIP, "stall"), (Fault.CONTACT_STIFFNESS, "contact-stiffness"), (Fault.HX711_LINE, "hx711-line"),
     (Fault.HX711_CADENCE, "hx711-cadence"), (Fault.HX711_STUCK, "hx711-stuck"), (Fault.POSITION_LIMIT, "position-limit"),
     (Fault.CONTACT_LOST, "contact-lost"), (Fault.RESET, "reset"), (Fault.LOADCELL_SCALE, "loadcell-scale"),
+    (Fault.LOADCELL_ZERO, "loadcell-zero"),
 )
 
 

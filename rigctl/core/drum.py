@@ -87,6 +87,7 @@ class Fault(enum.IntFlag):
     CONTACT_LOST = 1 << 15
     RESET = 1 << 16  # FAULT_BITS_HI bit 0 (firmware 1.5)
     LOADCELL_SCALE = 1 << 17  # FAULT_BITS_HI bit 1 (firmware 1.6)
+    LOADCELL_ZERO = 1 << 18  # FAULT_BITS_HI bit 2 (firmware 1.7)
 
 
 #: the reading's scale check (docs/wire-protocol.md 2.12): the probe's stiffness over the one stored with the
@@ -191,7 +192,7 @@ ACTUATOR_DIRECTION_CAUSES = (
 #: cause is fixed (:func:`fault_advice` says so). A fault bit added for a lying reading belongs here too
 CRUSH_FAULTS = (Fault.FORCE_LIMIT | Fault.LOADCELL_REVERSED | Fault.ACTUATOR_DIRECTION | Fault.CONTACT_STIFFNESS
                 | Fault.POSITION_LIMIT | Fault.HX711_STUCK | Fault.HX711_LINE | Fault.HX711_CADENCE | Fault.CONTACT_LOST
-                | Fault.LOADCELL_SCALE)
+                | Fault.LOADCELL_SCALE | Fault.LOADCELL_ZERO)
 
 #: what :func:`fault_advice` adds to a crush-class fault
 CRUSH_NOTE = ("a crush-class fault: opening the rig never clears it; acknowledge it with a reason once the cause is "
@@ -322,6 +323,20 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "itself (drift, a loose excitation lead, a wrong calibration mass), which makes the reading and the force "
         "limit off by as much. Fix what you found, then recalibrate with the reference mass (the GUI's calibration "
         "tab, which stores the contact's stiffness again). Then CLEAR_FAULT."),
+    Fault.LOADCELL_ZERO: FaultWords(
+        "load-cell reading off its zero with nothing pressing",
+        "a press from home at rest found the settled reading off the tare by more than PRESS_DIR_G (8 g), or the "
+        "probe's steps raised no load where the contact's stored stiffness says they press: the reading moved with no "
+        "step",
+        "the load cell read a force with the actuator at home and nothing moving (or the press's probe found no load "
+        "rising where the reading showed the contact): the reading is not the contact's, and a press on it would "
+        "hold the wrong force or none. It latched before pressing (the actuator stays where it is, or backs off from "
+        "the probe). In the order "
+        "a lab meets them: something resting on the sensor or the actuator (a hand, a tool, debris between drum and "
+        "sensor): remove it; the cell's zero moved (the cell overloaded or knocked, its mount's screws, a cable pulled "
+        "or a joint in its leads: check them and the HX711's wires). Then CLEAR_FAULT: the start HOMEs (its way "
+        "proven) and tares the cell again at home; if this latches again with nothing on the sensor, the cell or its "
+        "wiring is failing: replace it and recalibrate."),
 }
 
 

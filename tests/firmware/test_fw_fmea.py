@@ -156,3 +156,47 @@ def test_a_wrong_calibration_saved_latches_loadcell_scale_at_the_probe(bench):
     assert st.contact_stiffness_g_per_mm == pytest.approx(2000, rel=0.08)
     bench.wait(lambda s: s.actuator_mm < 0.05, 10)  # backed off home: the probe's step proved the way
     assert bench.peak_g() < 300, bench.peak_g()  # the probe's 150 g read, 75 g true: never the 1,000 g asked
+
+
+def test_a_reading_that_moves_with_no_step_latches_loadcell_zero(tmp_path):
+    """Issue 75 item 5 on the firmware (docs/wire-protocol.md 2.13), fresh campaign seed 775401's case: 442 g/mm at
+    10 SPS, a trial at 307 g, then the cell's zero moves by +302 g with the actuator at home. The next press judges its
+    settled reading against the tare and latches LOADCELL_ZERO (FAULT_BITS_HI bit 2) before any step: the truth stays
+    at 0 g (firmware 1.6 recorded that trial with no contact). CLEAR_FAULT leaves NOT_HOMED; HOME tares again and the
+    press holds the true setpoint. Then the zero moves during a press's approach, before the contact: the probe's steps
+    raise no load where the stored stiffness says they press: LOADCELL_ZERO at the probe, nothing pressed (its
+    steps may just touch the contact: under the probe's contact load)."""
+    bench = Bench(tmp_path, sps=10, k=442.0)
+    try:
+        home(bench.drum)
+        bench.drum.set_force(307)
+        bench.drum.press()
+        assert bench.wait(lambda s: s.state in (State.FAULT, State.FORCE_SETTLED), 40).state == State.FORCE_SETTLED
+        bench.drum.stop()
+        bench.wait(lambda s: s.actuator_mm < 0.05 and s.state == State.IDLE, 10)
+        bench.inject("cell-offset=302.4@0")
+        bench.sim_wait(1.0)
+        bench.drum.press()
+        st = bench.wait(lambda s: s.state in (State.FAULT, State.FORCE_SETTLED), 20)
+        assert st.faults == Fault.LOADCELL_ZERO, st
+        assert bench.drum.read_input(wire.InputRegister.FAULT_BITS_HI) == 4  # bit 18
+        tel = bench.rig.next_telemetry()
+        assert tel.act_mm < 0.05 and tel.force_g == 0.0, tel  # nothing moved, nothing pressed
+        bench.drum.clear_fault()
+        assert bench.drum.read_status().state == State.NOT_HOMED
+        home(bench.drum)  # proves the switch, tares again at home
+        bench.drum.press()
+        assert bench.wait(lambda s: s.state in (State.FAULT, State.FORCE_SETTLED), 40).state == State.FORCE_SETTLED
+        bench.sim_wait(0.5)
+        assert abs(bench.true_force_g() - 307) < 40, bench.true_force_g()
+        bench.drum.stop()
+        bench.wait(lambda s: s.actuator_mm < 0.05 and s.state == State.IDLE, 10)
+        bench.sim_wait(1.0)
+        bench.drum.press()
+        bench.wait(lambda s: s.actuator_mm > 0.3 or s.state == State.FAULT, 20)  # approaching, 1 mm from the contact
+        bench.inject("cell-offset=602.4@0")  # the zero moves by 300 g more on the way
+        st = bench.wait(lambda s: s.state in (State.FAULT, State.FORCE_SETTLED), 30)
+        assert st.faults == Fault.LOADCELL_ZERO, st
+        assert bench.true_force_g() < 50.0  # the probe's steps may touch the contact (6.6 g here), never press it
+    finally:
+        bench.close()

@@ -160,6 +160,9 @@ FIXED_AS_BUILT: dict[int, str] = {
           "trips the extrapolation); the class, a coupling's catch-up after ANY latch, is not bounded by firmware "
           "(the motor stands, the screw jumps): the driver's stall bounds its force and the BOM's coupling that "
           "cannot slip its cause (docs/safety.md, common causes)",
+    775401: "cell-offset=+302 g between trials (442 g/mm, 10 SPS, setpoint 307 g): on firmware 1.6 the probe took the "
+            "offset for the contact and the trial was recorded with none (true 0 g); since 1.7 the press's start "
+            "judges the reading's zero at home at rest and latches LOADCELL_ZERO before any step (spec 2.13)",
 }
 
 

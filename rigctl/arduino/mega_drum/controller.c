@@ -339,11 +339,16 @@ static void boot_load_check(ctl_t *c, int32_t raw)
  * is proven back at home (homed, at rest, its step count at home or behind, or the switch closed with the count
  * within AWAY_HOME_UM of home: a back-off ends at the switch a few steps short of the count's zero) or CLEAR_FAULT */
 #define AWAY_HOME_UM 100.0f
+static uint8_t at_home_at_rest(const ctl_t *c)
+{
+    return c->homed && c->act_mode == ACT_MODE_HOLD &&
+           (c->act_pos_steps <= 0 || (c->home_switch && act_pos_mm(c) * 1000.0f <= AWAY_HOME_UM));
+}
+
 static void away_watch(ctl_t *c)
 {
     if (c->act_mode == ACT_MODE_FORCE || c->act_mode == ACT_MODE_HOMING) c->away = 1;
-    else if (c->homed && c->act_mode == ACT_MODE_HOLD &&
-             (c->act_pos_steps <= 0 || (c->home_switch && act_pos_mm(c) * 1000.0f <= AWAY_HOME_UM)))
+    else if (at_home_at_rest(c))
         c->away = 0;
 }
 
@@ -464,11 +469,35 @@ static float contact_g(const ctl_t *c)
     return half < contact ? half : contact;
 }
 
+/* the reading's zero off the contact (spec 2.13, issue 75 item 5): a force that moves with no step. The tare is taken
+ * at home; a press that starts there at rest (as the warm-boot record's "at home" says) first judges its reading,
+ * settled (HX711_RATE_PERIODS + 1 readings with the actuator still), against it: off by more than PRESS_DIR_G (the
+ * smallest change of load the direction watch takes for motion) the cell's zero moved (a cell overloaded or knocked,
+ * a lead's joint, its mount) or something loads the sensor (a hand, a tool, debris), and the probe would find a
+ * contact that is not there (775401: +302 g between trials at a setpoint of 307 g, the trial recorded without
+ * contact on firmware 1.6) or the direction watch a motor turning the wrong way (a zero 10 g low: the load falls as
+ * the press approaches). Judged at the press's start, where it matters: a hand resting on the rig between presses is
+ * no fault. 8 g is 10 sd of the model's 0.8 g a reading and ~80 sd of a real HX711's (50-90 nV rms at gain 128,
+ * 20-40 counts, ~0.1 g at 420 counts/g); off the contact the drum's runout (20 um: 100 g at 5 kg/mm) does not reach
+ * the cell; a cell's zero drifts ~0.02 % of its range per 10 K (1 g on a 5 kg cell). */
+/* a probe whose steps went forward where the contact's stiffness stored with the calibration says they press half of
+ * PROBE_REFINE_G or more, and the load rose by less than PRESS_DIR_G: the load its approach read is not the contact's
+ * (the reading's zero moved on the way, or nothing is there) */
+static uint8_t probe_found_nothing(const ctl_t *c, float rise_g, float dx_mm)
+{
+    float ref = (float)c->hreg[RIGCTL_HREG_CALIBRATION_STIFFNESS_G_PER_MM];
+    return ref * dx_mm >= 0.5f * (float)RIGCTL_PROBE_REFINE_G && rise_g < (float)RIGCTL_PRESS_DIR_G;
+}
+
 static void probe_reading(ctl_t *c, float f)
 {
     float contact = contact_g(c), half = 0.5f * (float)c->hreg[RIGCTL_HREG_FORCE_SETPOINT_G];
     float spmm = (float)c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
     c->act_vel_mm_s = 0.0f;
+    if (c->probe_phase == PROBE_ZERO) { /* ctl_loadcell judged the settled reading: approach from this one */
+        if (c->still_readings <= RIGCTL_HX711_RATE_PERIODS) return;
+        c->probe_phase = PROBE_APPROACH;
+    }
     switch (c->probe_phase) {
     case PROBE_APPROACH:
         if (f < contact) c->act_vel_mm_s = approach_fast(c) ? ACT_MAX_SPEED_MM_S : probe_speed(c);
@@ -510,6 +539,10 @@ static void probe_reading(ctl_t *c, float f)
             }
             c->probe_phase = PROBE_NONE;
             force_pi_reset(&c->pi);
+            if (probe_found_nothing(c, f - c->probe_f1_gf, dx)) {
+                fault(c, RIGCTL_FAULT_LOADCELL_ZERO);
+                return;
+            }
             if (k < 1.0f) k = 1.0f;
             c->contact_k_g_per_step = k / spmm;
             c->contact_x0_steps = (float)c->probe_x1_steps - c->probe_f1_gf / c->contact_k_g_per_step;
@@ -558,6 +591,8 @@ static void engage(ctl_t *c)
     press_dir_forget(c);
     c->press_dir_leave = c->homed && c->home_switch; /* HOME's switch proof stands until the contact (2.11) */
     c->probe_phase = c->contact_valid ? PROBE_NONE : PROBE_APPROACH; /* every press from rest probes (2.11) */
+    if (c->probe_phase == PROBE_APPROACH && at_home_at_rest(c) && c->tared)
+        c->probe_phase = PROBE_ZERO; /* from home at rest: its reading's zero first (2.13) */
     c->force_prev_valid = 0;
     c->act_mode = ACT_MODE_FORCE;
     c->state = RIGCTL_STATE_SEEKING_FORCE;
@@ -1080,6 +1115,7 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
     }
     c->loadcell_raw = raw;
     c->have_reading = 1;
+    c->still_readings = c->act_vel_mm_s != 0.0f ? 0 : (uint8_t)(c->still_readings < 255 ? c->still_readings + 1 : 255);
     boot_load_check(c, raw);
     if (c->act_mode == ACT_MODE_RETRACT && (c->backoff_phase == BACKOFF_REST || c->backoff_phase == BACKOFF_SETTLE)) {
         backoff_reading(c, raw);
@@ -1156,6 +1192,13 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
         return;
     }
     if (!force_engaged(c)) return;
+    if (c->probe_phase == PROBE_ZERO && c->still_readings > RIGCTL_HX711_RATE_PERIODS &&
+        (f < 0.0f ? -f : f) > (float)RIGCTL_PRESS_DIR_G) {
+        /* nothing moved and the reading is off its zero: not homed, so the operator's HOME (allowed from NOT_HOMED
+         * whatever the load) proves the switch and tares again once the cause is found */
+        stop_unproven(c, RIGCTL_FAULT_LOADCELL_ZERO);
+        return;
+    }
     if (f < -2.0f * (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]) {
         fault(c, RIGCTL_FAULT_LOADCELL_REVERSED); /* pressing makes it read negative: reversed cell or scale */
         return;

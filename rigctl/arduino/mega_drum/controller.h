@@ -30,6 +30,7 @@ extern "C" {
 #define PROBE_SETTLE2  4
 #define PROBE_STEP2    5 /* the second measuring step, sized to press PROBE_REFINE_G more (spec 2.11) */
 #define PROBE_SETTLE3  6
+#define PROBE_ZERO     7 /* before the approach of a press from home at rest: the settled reading against the tare (2.13) */
 
 typedef struct {
     uint16_t hreg[RIGCTL_N_HOLDING]; /* hreg[LOADCELL_SCALE_X100] is the view of the 32-bit scale in HI/LO */
@@ -81,6 +82,7 @@ typedef struct {
     int32_t prev_raw;
     uint8_t same_raw;          /* readings in a row with the same raw value */
     uint8_t line_codes;        /* 0x000000 / 0xFFFFFF readings in a row */
+    uint8_t still_readings;    /* readings in a row with the actuator commanded still (255: at least) (2.13) */
     /* the tare's raw zero stored with the calibration (spec 2.11; glue, at boot) */
     int32_t zero_raw;
     uint8_t zero_valid;
