@@ -326,8 +326,8 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
     Fault.LOADCELL_ZERO: FaultWords(
         "load-cell reading off its zero with nothing pressing",
         "a press from home at rest found the settled reading off the tare by more than PRESS_DIR_G (8 g), or the "
-        "probe's steps raised no load where the contact's stored stiffness says they press: the reading moved with no "
-        "step",
+        "probe's steps raised less than a quarter of the load the contact's stored stiffness says they press: the "
+        "reading moved with no step",
         "the load cell read a force with the actuator at home and nothing moving (or the press's probe found no load "
         "rising where the reading showed the contact): the reading is not the contact's, and a press on it would "
         "hold the wrong force or none. It latched before pressing (the actuator stays where it is, or backs off from "

@@ -164,7 +164,7 @@ def test_a_reading_that_moves_with_no_step_latches_loadcell_zero(tmp_path):
     settled reading against the tare and latches LOADCELL_ZERO (FAULT_BITS_HI bit 2) before any step: the truth stays
     at 0 g (firmware 1.6 recorded that trial with no contact). CLEAR_FAULT leaves NOT_HOMED; HOME tares again and the
     press holds the true setpoint. Then the zero moves during a press's approach, before the contact: the probe's steps
-    raise no load where the stored stiffness says they press: LOADCELL_ZERO at the probe, nothing pressed (its
+    raise less than a quarter of the load the stored stiffness says they press: LOADCELL_ZERO at the probe, nothing pressed (its
     steps may just touch the contact: under the probe's contact load)."""
     bench = Bench(tmp_path, sps=10, k=442.0)
     try:

@@ -961,7 +961,7 @@ static void test_scale_check()
 // the tare before it moves and latches LOADCELL_ZERO, not homed, where it stands (775401: +302 g at a setpoint of
 // 307 g, the trial recorded without contact on firmware 1.6). Off by PRESS_DIR_G (8 g) or less it presses (the force
 // then off by as much). An offset appearing during the approach, before the contact: the probe's steps
-// raise no load where the stored stiffness says they press: LOADCELL_ZERO too, before any press
+// raise less than a quarter of the load the stored stiffness says they press: LOADCELL_ZERO too, before any press
 static void test_zero_check()
 {
     struct Case {
@@ -1007,8 +1007,10 @@ static void test_zero_check()
         press_settled(c, p, now, k.setpoint);
         CHECK(c.faults == 0 && std::abs(p.force() - k.setpoint) < 30);
     }
-    {   // the offset appears during the approach (the actuator 3 mm from the contact): the probe takes it for the
-        // contact, its steps raise nothing: LOADCELL_ZERO before the contact, nothing pressed
+    for (double at_mm : {0.3, 2.3, 2.5}) {
+        // the offset appears during the approach (the actuator 2.7 mm, 0.7 mm, 0.5 mm from the contact): the probe
+        // takes it for the contact, its steps raise nothing or (reaching the real contact) a little: LOADCELL_ZERO
+        // before any press (a flat 8 g let the 0.7 mm case through: its steps rose 8.3 g under simavr)
         ctl_t c;
         Plant p;
         uint32_t now = 0;
@@ -1019,12 +1021,12 @@ static void test_zero_check()
         run_ms(c, p, now, 100);
         home(c, p, now);
         CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 307) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
-        for (int i = 0; i < 100 && p.x_mm < 0.3; i++) run_ms(c, p, now, 10);
+        for (int i = 0; i < 1000 && p.x_mm < at_mm; i++) run_ms(c, p, now, 1);
         p.offset += 302 * p.counts_per_g;
         for (int i = 0; i < 500 && c.state == RIGCTL_STATE_SEEKING_FORCE; i++) run_ms(c, p, now, 10);
-        std::printf("zero check: offset +302 g during the approach: state %u faults 0x%lx, x %.3f mm, peak %.0f g\n",
-                    c.state, (unsigned long)c.faults, p.x_mm, p.peak_g);
-        CHECK(c.faults == RIGCTL_FAULT_LOADCELL_ZERO && p.peak_g == 0.0);
+        std::printf("zero check: offset +302 g during the approach at %.1f mm: state %u faults 0x%lx, x %.3f mm, "
+                    "peak %.0f g\n", at_mm, c.state, (unsigned long)c.faults, p.x_mm, p.peak_g);
+        CHECK(c.faults == RIGCTL_FAULT_LOADCELL_ZERO && p.peak_g < 60.0);
     }
     std::printf("zero check: ok\n");
 }
