@@ -355,8 +355,8 @@ _SPARE_TAILS: list[bytearray] = []
 
 class RandomAccessFile(io.RawIOBase):
     """The base of the file objects rigctl hands h5py (:class:`OverlayFile`,
-    :class:`rigctl.storage.outputs.GuardedFile`): readable, writable and seekable, its position ``_pos`` and size ``_size`` in bytes kept by the subclass, which
-    gives ``readinto``, ``write`` and ``truncate``."""
+    :class:`rigctl.storage.outputs.GuardedFile`): readable, writable and seekable, its position ``_pos`` and size
+    ``_size`` in bytes kept by the subclass, which gives ``readinto``, ``write`` and ``truncate``."""
 
     _pos: int
     _size: int
