@@ -470,6 +470,9 @@ def check_reference_mass(ctx: DoctorContext) -> CheckResult:
         read = _mean_force_g(ctx) - before
     finally:
         place(0.0)
+        # the mass just taken off: the HX711 settles (4 periods) before the next check's press, whose start judges
+        # the reading against the tare (LOADCELL_ZERO, wire-protocol 2.13: 432 g read 0 ms after the lift latched it)
+        ctx.clock.sleep(HAND_PRESS_WAIT_S)
     stored = drum.calibration_stiffness()
     off_pct = 100.0 * (read - mass) / mass
     values = {"mass_g": mass, "read_g": read, "off_pct": off_pct, "stored_stiffness_g_per_mm": stored}
