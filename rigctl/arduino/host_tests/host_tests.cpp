@@ -357,6 +357,18 @@ static void home(ctl_t &c, Plant &p, uint32_t &now)
     CHECK(c.state == RIGCTL_STATE_IDLE && c.homed && c.tared);
 }
 
+/* a controller powered up with `stored_g_per_mm` as the contact's stiffness stored with the calibration (the glue's,
+ * from EEPROM at boot), on a plant of `k_g_per_mm` with the HX711's sinc^4, homed and tared */
+static void calibrated_at_home(ctl_t &c, Plant &p, uint32_t &now, double k_g_per_mm, uint16_t stored_g_per_mm)
+{
+    p.sinc4 = true;
+    p.k = k_g_per_mm;
+    ctl_init(&c, 0, 0);
+    c.hreg[RIGCTL_HREG_CALIBRATION_STIFFNESS_G_PER_MM] = stored_g_per_mm;
+    run_ms(c, p, now, 100);
+    home(c, p, now);
+}
+
 static void press_settled(ctl_t &c, Plant &p, uint32_t &now, uint16_t g)
 {
     CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, g) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
@@ -904,12 +916,7 @@ static void test_scale_check()
         ctl_t c;
         Plant p;
         uint32_t now = 0;
-        p.sinc4 = true;
-        p.k = 1000;
-        ctl_init(&c, 0, 0);
-        c.hreg[RIGCTL_HREG_CALIBRATION_STIFFNESS_G_PER_MM] = k.stored; // the glue's, from EEPROM at boot
-        run_ms(c, p, now, 100);
-        home(c, p, now);
+        calibrated_at_home(c, p, now, 1000, k.stored); // the glue's, from EEPROM at boot
         p.counts_per_g = 420 * k.gain; // after the tare: the zero is right, the scale is not
         CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 700) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
         for (int i = 0; i < 800 && c.state == RIGCTL_STATE_SEEKING_FORCE; i++) run_ms(c, p, now, 10);
@@ -938,12 +945,7 @@ static void test_scale_check()
         ctl_t c;
         Plant p;
         uint32_t now = 0;
-        p.sinc4 = true;
-        p.k = 1000;
-        ctl_init(&c, 0, 0);
-        c.hreg[RIGCTL_HREG_CALIBRATION_STIFFNESS_G_PER_MM] = 1000;
-        run_ms(c, p, now, 100);
-        home(c, p, now);
+        calibrated_at_home(c, p, now, 1000, 1000);
         p.counts_per_g = 420 * 0.5;
         press_settled(c, p, now, 60);
         CHECK(c.faults == 0 && std::abs(p.force() - 120) < 30);
@@ -977,12 +979,7 @@ static void test_zero_check()
         ctl_t c;
         Plant p;
         uint32_t now = 0;
-        p.sinc4 = true;
-        p.k = k.k;
-        ctl_init(&c, 0, 0);
-        c.hreg[RIGCTL_HREG_CALIBRATION_STIFFNESS_G_PER_MM] = (uint16_t)k.k;
-        run_ms(c, p, now, 100);
-        home(c, p, now);
+        calibrated_at_home(c, p, now, k.k, (uint16_t)k.k);
         press_settled(c, p, now, k.setpoint); // the first trial
         CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_STOP));
         run_ms(c, p, now, 3000);
@@ -1014,12 +1011,7 @@ static void test_zero_check()
         ctl_t c;
         Plant p;
         uint32_t now = 0;
-        p.sinc4 = true;
-        p.k = 442;
-        ctl_init(&c, 0, 0);
-        c.hreg[RIGCTL_HREG_CALIBRATION_STIFFNESS_G_PER_MM] = 442;
-        run_ms(c, p, now, 100);
-        home(c, p, now);
+        calibrated_at_home(c, p, now, 442, 442);
         CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 307) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
         for (int i = 0; i < 1000 && p.x_mm < at_mm; i++) run_ms(c, p, now, 1);
         p.offset += 302 * p.counts_per_g;
