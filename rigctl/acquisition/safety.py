@@ -94,6 +94,9 @@ CAUSES: dict[str, tuple[str, str]] = {
     "loadcell-zero": ("the load cell read a force with nothing pressing",
                       "remove anything resting on the sensor or the actuator, check the cell's mount, its cable and "
                       "the HX711's wires (its zero moved); the start HOMEs and tares again" + _CRUSH),
+    "contact-missing": ("no force where the contact was", "check the actuator's coupling and lead screw (a slipping "
+                        "coupling, lost steps), then the load cell and its wires (a broken cell reads no load), then "
+                        "the plate (changed: HOME)" + _CRUSH),
 }
 
 #: the cause of each controller fault bit (the first that is set names the latch)
@@ -105,7 +108,7 @@ _FAULT_CAUSES: tuple[tuple[Fault, str], ...] = (
     (Fault.DRUM_SLIP, "stall"), (Fault.CONTACT_STIFFNESS, "contact-stiffness"), (Fault.HX711_LINE, "hx711-line"),
     (Fault.HX711_CADENCE, "hx711-cadence"), (Fault.HX711_STUCK, "hx711-stuck"), (Fault.POSITION_LIMIT, "position-limit"),
     (Fault.CONTACT_LOST, "contact-lost"), (Fault.RESET, "reset"), (Fault.LOADCELL_SCALE, "loadcell-scale"),
-    (Fault.LOADCELL_ZERO, "loadcell-zero"),
+    (Fault.LOADCELL_ZERO, "loadcell-zero"), (Fault.CONTACT_MISSING, "contact-missing"),
 )
 
 
