@@ -484,6 +484,11 @@ static uint8_t contact_missing(const ctl_t *c)
     float spmm = (float)c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
     float past = (float)RIGCTL_PROBE_LOCATED_MARGIN_UM * 1e-3f * spmm;
     if (!c->contact_located || c->probe_phase != PROBE_APPROACH || c->located_k_g_per_step <= 0.0f) return 0;
+    /* no force rise: a load of PRESS_DIR_G or more is the contact found late (a coupling that slips, the 10 SPS
+     * reading's lag), which the probe takes on from here (fresh seed 882464: a latch at 31 g read held still to prove
+     * its back-off and the wound-up coupling caught up 0.28 mm towards the sensor); and only on a proven way, whose
+     * back-off runs at once (under BACKOFF_LOAD_G: no hold to prove it, so no catch-up while the motor holds) */
+    if ((c->force_gf < 0.0f ? -c->force_gf : c->force_gf) >= (float)RIGCTL_PRESS_DIR_G || !press_dir_proven(c)) return 0;
     return (float)c->act_pos_steps > c->located_x0_steps + past + contact_g(c) / c->located_k_g_per_step;
 }
 
