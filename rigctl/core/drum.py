@@ -88,7 +88,7 @@ class Fault(enum.IntFlag):
     RESET = 1 << 16  # FAULT_BITS_HI bit 0 (firmware 1.5)
     LOADCELL_SCALE = 1 << 17  # FAULT_BITS_HI bit 1 (firmware 1.6)
     LOADCELL_ZERO = 1 << 18  # FAULT_BITS_HI bit 2 (firmware 1.7)
-    CONTACT_MISSING = 1 << 19  # FAULT_BITS_HI bit 3 (firmware 1.7)
+    CONTACT_MISSING = 1 << 19  # FAULT_BITS_HI bit 3 (firmware 1.8)
 
 
 #: the reading's scale check (docs/wire-protocol.md 2.12): the probe's stiffness over the one stored with the

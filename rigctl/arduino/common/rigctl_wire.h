@@ -104,7 +104,7 @@
 #define RIGCTL_DRUM_BAUD             500000UL
 #define RIGCTL_DRUM_DEVICE_ID        1
 #define RIGCTL_MEGA_FW_MAJOR         1
-#define RIGCTL_MEGA_FW_MINOR         7
+#define RIGCTL_MEGA_FW_MINOR         8
 #define RIGCTL_MEGA_FIRMWARE_VERSION ((RIGCTL_MEGA_FW_MAJOR << 8) | RIGCTL_MEGA_FW_MINOR)
 
 /* Modbus function codes and exception codes used by the spec */
@@ -410,6 +410,9 @@
 #define RIGCTL_PRESS_DIR_STEPS             16
 #define RIGCTL_PRESS_DIR_G                 8
 #define RIGCTL_PRESS_DIR_PROOF_READINGS    2
+/* 2.13 the reading's zero at a press's start at home: the tare follows a settled reading within PRESS_DIR_G half the
+ * way (slow drift: the cell's temperature, the HX711's offset, creep), never more than ZERO_TRACK_G from HOME's tare */
+#define RIGCTL_ZERO_TRACK_G                24
 #define RIGCTL_INDEX_SOURCE_STEPS          0
 #define RIGCTL_INDEX_SOURCE_SENSOR         1
 

@@ -155,14 +155,20 @@ static void backoff_step(ctl_t *c)
     c->backoff_tries++;
 }
 
+/* the back-off's readings of the HX711 settling on a step (or the drum coming to rest) start again */
+static void backoff_settle_restart(ctl_t *c)
+{
+    c->backoff_readings = 0;
+    c->backoff_sum_g = 0.0f;
+}
+
 static void backoff_begin(ctl_t *c, float k_meas_g_per_step)
 {
     int32_t zero, by_um;
     float k, spmm = (float)c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
     c->backoff_phase = BACKOFF_FREE;
     c->backoff_tries = 0;
-    c->backoff_readings = 0;
-    c->backoff_sum_g = 0.0f;
+    backoff_settle_restart(c);
     if (!c->have_reading || !direction_zero(c, &zero) || load_g(c, c->loadcell_raw, zero) < BACKOFF_LOAD_G) return;
     k = k_meas_g_per_step > 0.0f ? k_meas_g_per_step : (float)ctl_stiffness_max(c) / spmm;
     c->backoff_step_steps = (int32_t)(BACKOFF_PROOF_G / k);
@@ -982,8 +988,7 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
         } else if (c->backoff_phase == BACKOFF_STEP && c->act_pos_steps <= c->backoff_target_steps) {
             c->act_vel_mm_s = 0.0f; /* the proof step is done: hold until the HX711 has settled on it */
             c->backoff_phase = BACKOFF_SETTLE;
-            c->backoff_readings = 0;
-            c->backoff_sum_g = 0.0f;
+            backoff_settle_restart(c);
         } else {
             c->act_vel_mm_s = backoff_speed(c);
         }
@@ -1110,8 +1115,7 @@ static void backoff_reading(ctl_t *c, int32_t raw)
     float d;
     if (!direction_zero(c, &zero)) return;
     if (c->backoff_phase == BACKOFF_REST && (c->drum_cmd_mm_s > 0.0f || c->drum_actual_mm_s > 0.0f)) {
-        c->backoff_readings = 0; /* the runout's ripple: wait for the drum at rest */
-        c->backoff_sum_g = 0.0f;
+        backoff_settle_restart(c); /* the runout's ripple: wait for the drum at rest */
         return;
     }
     if (++c->backoff_readings <= RIGCTL_HX711_RATE_PERIODS) return; /* the HX711 settling on the step */
@@ -1129,6 +1133,34 @@ static void backoff_reading(ctl_t *c, int32_t raw)
     } else {
         backoff_step(c); /* no clear change yet (a soft contact, backlash): one more step */
     }
+}
+
+/* the force of a reading against the tare: FORCE_G (rounded, saturated) and the float the loop uses, g */
+static float force_reading(ctl_t *c, int32_t raw)
+{
+    float f = ctl_force_from_raw(c, raw);
+    c->force_gf = f;
+    c->force_g = (int16_t)(f > 32767.0f ? 32767 : (f < -32768.0f ? -32768 : (f < 0 ? f - 0.5f : f + 0.5f)));
+    return f;
+}
+
+/* a press's start at home at rest judges its settled reading against the tare (spec 2.13, above the probe): within
+ * PRESS_DIR_G the tare follows it half the way, so a zero that drifts slowly (a cell's ~1 g per 10 K, the HX711's
+ * offset drift, creep after a heavy press) is no fault between HOMEs, and the reading's noise does not walk the tare
+ * (half the way: the tare's own noise is the reading's over sqrt(3); a drift of d a press leaves the tare 2 d behind);
+ * never more than ZERO_TRACK_G from the tare HOME took, so a load that grows press by press cannot be tared away
+ * unnoticed (a hand, debris: at most ZERO_TRACK_G of it ends up pressed on top of the setpoint, 1.6 % of
+ * FORCE_LIMIT). Off by more: 0, the caller latches LOADCELL_ZERO and the operator's HOME tares again */
+static uint8_t zero_follow(ctl_t *c, int32_t raw)
+{
+    int32_t tare = c->tare_offset + (raw - c->tare_offset) / 2;
+    float f = c->force_gf;
+    if ((f < 0.0f ? -f : f) > (float)RIGCTL_PRESS_DIR_G ||
+        load_g(c, tare, c->home_tare_offset) > (float)RIGCTL_ZERO_TRACK_G) return 0;
+    c->tare_offset = tare;
+    c->force_prev_valid = 0;
+    (void)force_reading(c, raw);
+    return 1;
 }
 
 void ctl_loadcell(ctl_t *c, int32_t raw)
@@ -1208,6 +1240,7 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
         (c->homed || (c->state == RIGCTL_STATE_HOMING && c->act_mode == ACT_MODE_HOLD) || !c->zero_valid ||
          load_g(c, raw, c->zero_raw) <= TARE_ZERO_AGREE_G)) {
         c->tare_offset = raw;
+        c->home_tare_offset = raw;
         c->tare_pending = 0;
         c->force_prev_valid = 0;
         c->tared = 1;
@@ -1216,9 +1249,7 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
             c->state = RIGCTL_STATE_IDLE;
         }
     }
-    f = ctl_force_from_raw(c, raw);
-    c->force_gf = f;
-    c->force_g = (int16_t)(f > 32767.0f ? 32767 : (f < -32768.0f ? -32768 : (f < 0 ? f - 0.5f : f + 0.5f)));
+    f = force_reading(c, raw);
     /* the trip sees the future (spec 2.10): while the loop drives, the force read now is the true force ~2 periods
      * ago (sinc^4) and the next reading comes a period later, so the rise of the last period is extrapolated over
      * FORCE_LEAD_PERIODS (only then: a mass put on an idle cell is not the actuator's doing) */
@@ -1233,12 +1264,14 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
         return;
     }
     if (!force_engaged(c)) return;
-    if (c->probe_phase == PROBE_ZERO && c->still_readings > RIGCTL_HX711_RATE_PERIODS &&
-        (f < 0.0f ? -f : f) > (float)RIGCTL_PRESS_DIR_G) {
-        /* nothing moved and the reading is off its zero: not homed, so the operator's HOME (allowed from NOT_HOMED
-         * whatever the load) proves the switch and tares again once the cause is found */
-        stop_unproven(c, RIGCTL_FAULT_LOADCELL_ZERO);
-        return;
+    if (c->probe_phase == PROBE_ZERO && c->still_readings > RIGCTL_HX711_RATE_PERIODS) {
+        if (!zero_follow(c, raw)) {
+            /* nothing moved and the reading is off its zero: not homed, so the operator's HOME (allowed from
+             * NOT_HOMED whatever the load) proves the switch and tares again once the cause is found */
+            stop_unproven(c, RIGCTL_FAULT_LOADCELL_ZERO);
+            return;
+        }
+        f = c->force_gf;
     }
     if (f < -2.0f * (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]) {
         fault(c, RIGCTL_FAULT_LOADCELL_REVERSED); /* pressing makes it read negative: reversed cell or scale */

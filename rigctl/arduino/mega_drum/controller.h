@@ -126,6 +126,7 @@ typedef struct {
     /* load cell */
     int32_t loadcell_raw;
     int32_t tare_offset;
+    int32_t home_tare_offset; /* the tare HOME (or the power-up, or TARE) took: the zero's follow is bounded by it */
     uint8_t tare_pending;
     int16_t force_g;
     float force_gf;
