@@ -7,7 +7,6 @@ fails on firmware 1.1 (the issue's measured peaks in the comments)."""
 
 from __future__ import annotations
 
-import csv
 import time
 
 import pytest
@@ -15,10 +14,8 @@ import pytest
 from rigctl.core.drum import fault_advice
 from rigctl.core.faults import parse_fault
 from rigctl.devices import wire
-from rigctl.devices.drum import DrumClient, DrumError
-from rigctl.rigs import drum_answer_timeout_s
-from rigctl.simulation import hil
-from rigctl.simulation.model import MechanicsConfig, RigConfig
+from rigctl.devices.drum import DrumError
+from rigctl.simulation.hil_bench import HilBench
 
 from .conftest import home
 
@@ -29,84 +26,8 @@ HR, State, Fault = wire.HoldingRegister, wire.DrumState, wire.Fault
 BOUND_G = 1650.0
 
 
-class Bench:
-    """One HIL Mega (no Uno) with a truth log, its drum client, and the fault hooks of the harness."""
-
-    def __init__(self, tmp_path, *, sps: int, k: float, counts_per_g: float = 420.0, calibrated: bool = True):
-        mech = MechanicsConfig(contact_stiffness_g_per_mm=k, hx711_rate_sps=float(sps), contact_gap_mm=1.0,
-                               loadcell_counts_per_g=counts_per_g)
-        self.truth_path = tmp_path / f"truth-{sps}-{k:g}.csv"
-        self.rig = hil.HilRig(RigConfig(mechanics=mech), live=False, with_uno=False, tel_ms=5.0,
-                              truth_log=self.truth_path, factory_calibrated=calibrated).start()
-        self.rig.truth_start()
-        self.drum = DrumClient(self.rig.drum_port, timeout_s=drum_answer_timeout_s("hil"), clock=self.rig.clock).open()
-        self.sps = sps
-        self.drum.write_holding(HR.WATCHDOG_MS, 10000)
-        self.boot()
-
-    def boot(self) -> None:
-        """After a power-up or reset: the HX711's rate measured, the host's rate and watchdog written."""
-        self.drum.wait_hx711_rate(timeout_s=20)
-        if self.sps == 10:
-            self.drum.set_hx711_rate(10)
-            if Fault.HX711_RATE in self.drum.read_status().faults:
-                self.drum.clear_fault()
-        self.drum.write_holding(HR.WATCHDOG_MS, 10000)
-
-    def close(self) -> None:
-        self.drum.close()
-        self.rig.close()
-
-    def send(self, command: str) -> None:
-        self.rig._running(self.rig._mega, "Mega").send(command)
-
-    def reset_under_load(self) -> None:
-        """The MCU reset while the actuator is away from home: the controller latches RESET itself (firmware 1.5,
-        issue 76: its warm-boot record), then the host's boot and the operator's CLEAR_FAULT (nothing moves)."""
-        self.send("reset")
-        self.sim_wait(0.05)
-        st = self.wait(lambda s: Fault.RESET in s.faults, 5)
-        assert st.state == State.FAULT and Fault.RESET in st.faults, st
-        self.boot()
-        if Fault.RESET in self.drum.read_status().faults:
-            self.drum.clear_fault()
-
-    def inject(self, spec: str) -> None:
-        self.rig.faults.apply_fault(parse_fault(spec), True)
-
-    def sim_wait(self, seconds: float) -> None:
-        end = self.rig.next_telemetry().t_s + seconds
-        while self.rig.next_telemetry().t_s < end:
-            self.drum.read_status()
-
-    def wait(self, done, seconds: float):
-        """Poll the status until ``done(status)`` or ``seconds`` of simulated time; the last status."""
-        end = self.rig.next_telemetry().t_s + seconds
-        st = self.drum.read_status()
-        while not done(st) and self.rig.next_telemetry().t_s < end:
-            st = self.drum.read_status()
-        return st
-
-    def true_force_g(self) -> float:
-        return self.rig.next_telemetry().force_g
-
-    def wait_true_force(self, g: float, seconds: float = 30.0) -> None:
-        end = self.rig.next_telemetry().t_s + seconds
-        while self.true_force_g() < g:
-            assert self.rig.next_telemetry().t_s < end, f"the true force never reached {g} g"
-            self.drum.read_status()
-
-    def peak_g(self) -> float:
-        """The largest true force in the truth log so far."""
-        self.rig.truth._file.flush()
-        with open(self.truth_path) as f:
-            return max((float(r["true_force_g"]) for r in csv.DictReader(f)), default=0.0)
-
-    def press_settled(self, force_g: float) -> None:
-        self.drum.set_force(force_g)
-        self.drum.press()
-        st = self.wait(lambda s: s.state in (State.FORCE_SETTLED, State.FAULT), 60)
-        assert st.state == State.FORCE_SETTLED, f"{st.state!r} {st.faults!r} at {st.force_g} g"
+#: the bench: one HIL Mega with a truth log (rigctl.simulation.hil_bench)
+Bench = HilBench
 
 
 @pytest.fixture
