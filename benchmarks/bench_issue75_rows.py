@@ -5,7 +5,8 @@ benchmarks/bench_fault_campaign.py). The bound is 1.1 x FORCE_LIMIT = 1650 g (do
 
 Each row is the issue's measurement repeated as an operator would meet it (the issue's numbers were firmware 1.3's):
 
-- ``reversed-held``: the actuator's coil pair swapped while 1,450 g is held (10 SPS, 647 g/mm: seed 801696's rig);
+- ``reversed-held``: the actuator's coil pair swapped while 1,450 g is held (10 SPS, 647 g/mm: seed 801696's rig),
+  then a trial and the protocol's next force (1,000 g: the loop drives, the wrong way);
 - ``reversed-retract``: the same as the release begins (800259's moment);
 - ``switch-reset-home``: the home switch stuck closed, a reset under 1,000 g, HOME, then CLEAR_FAULT + HOME x3
   (10 SPS, 1 kg/mm);
@@ -69,17 +70,22 @@ def _latched(b: HilBench, seen: list[str]) -> None:
 def reversed_held(b: HilBench, seen: list[str]) -> None:
     b.press_settled(1450)
     b.inject("reversed-actuator@0")
+    b.drum.set_speed(80.0)
+    b.drum.run()  # the trial
+    b.sim_wait(2.0)
+    b.drum.set_force(1000)  # the protocol's next force: the loop drives (the wrong way)
     b.wait(lambda s: s.state == State.FAULT, 10)
     _latched(b, seen)
     b.sim_wait(2.0)
+    _latched(b, seen)
 
 
 def reversed_retract(b: HilBench, seen: list[str]) -> None:
     b.press_settled(1450)
-    b.drum.stop()
+    b.drum.stop()  # the release: a back-off that proves its way first
     b.sim_wait(0.05)
     b.inject("reversed-actuator@0")
-    b.wait(lambda s: s.state in (State.FAULT, State.IDLE), 10)
+    b.wait(lambda s: s.state == State.FAULT or (s.state == State.IDLE and s.actuator_mm < 0.05), 10)
     _latched(b, seen)
     b.sim_wait(2.0)
 
