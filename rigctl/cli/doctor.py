@@ -11,6 +11,8 @@ import click
 
 from rigctl.cli.ranges import SEED, floats
 from rigctl.cli.rig_flags import (
+    ask_operator_mass,
+    check_config,
     check_one_rig,
     check_truth_log,
     drum_port_option,
@@ -21,22 +23,6 @@ from rigctl.cli.rig_flags import (
     taxel_port_option,
     truth_log_option,
 )
-
-
-def _check_config(config_path: Path | None, save: bool) -> None:
-    """The rig config read (and, with --save, checked as the file the report replaces) before the rig starts: a
-    session, another program's file, a device or a file that is not a rig config is refused (exit 2)."""
-    from rigctl.acquisition.rigconfig import CalibrationError, config_path as resolved, load_rig_config
-    from rigctl.cli.outputs import UsageProblem
-    from rigctl.storage.outputs import OutputError, check_replaceable
-
-    path = resolved(config_path)
-    try:
-        if save:
-            check_replaceable(path, option="--config")
-        load_rig_config(path)
-    except (OutputError, CalibrationError) as exc:
-        raise UsageProblem(f"--config: {exc}" if not str(exc).startswith("--config") else str(exc)) from None
 
 
 @click.command("doctor")
@@ -86,7 +72,7 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
     check_one_rig(sim=sim, hil=hil, inprocess=inprocess, drum_port=drum_port)
     from rigctl.operations import RigSource, doctor as run
 
-    _check_config(config_path, save)
+    check_config(config_path, save)
 
     if checks:
         try:
@@ -113,7 +99,7 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
         acknowledge = (ack.strip(), operator_name())
     lines = _SkipFolder(click.echo)
     # on hardware the operator puts the reference mass on the cell when asked (a terminal only: a script skips it)
-    place_mass = _ask_operator if source.kind == "hardware" and sys.stdin.isatty() else None
+    place_mass = ask_operator_mass if source.kind == "hardware" and sys.stdin.isatty() else None
     report = run(source, checks=checks or None, host_config_path=config_path, seed=seed, rest_s=rest_s,
                  save=save, on_result=None if as_json else lines.add, acknowledge=acknowledge, place_mass=place_mass)
     lines.flush()
@@ -128,13 +114,6 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
         click.echo(f"not checked: {', '.join(r.name for r in not_run)} could not run (exit 1)", err=True)
     if not report.ok or not_run:
         raise SystemExit(1)
-
-
-def _ask_operator(mass_g: float) -> None:
-    """The reference-mass check's operator: puts ``mass_g`` grams on the load cell (0: takes it off), Enter when done."""
-    click.prompt(f"put the {mass_g:g} g reference mass on the load cell, then press Enter" if mass_g
-                 else "take the reference mass off the load cell, then press Enter", default="", show_default=False,
-                 err=True)
 
 
 class _SkipFolder:

@@ -170,3 +170,28 @@ def check_one_rig(*, sim: bool, hil: bool, inprocess: bool, drum_port: str | Non
         raise click.UsageError("--drum-port/--taxel-port select the hardware rig: drop --sim/--hil/--inprocess")
     if sim + hil + inprocess > 1:
         raise click.UsageError("choose one of --sim, --hil and --inprocess")
+
+
+def check_config(config_path: Path | None, save: bool) -> None:
+    """``--config`` (``doctor``, ``calibrate``): the rig config read (and, with ``save``, checked as the file the
+    result replaces) before the rig starts: a session, another program's file, a device or a file that is not a rig
+    config is refused (exit 2)."""
+    from rigctl.acquisition.rigconfig import CalibrationError, config_path as resolved, load_rig_config
+    from rigctl.cli.outputs import UsageProblem
+    from rigctl.storage.outputs import OutputError, check_replaceable
+
+    path = resolved(config_path)
+    try:
+        if save:
+            check_replaceable(path, option="--config")
+        load_rig_config(path)
+    except (OutputError, CalibrationError) as exc:
+        raise UsageProblem(f"--config: {exc}" if not str(exc).startswith("--config") else str(exc)) from None
+
+
+def ask_operator_mass(mass_g: float) -> None:
+    """The operator puts ``mass_g`` grams on the load cell (0: takes it off) and presses Enter (the reference-mass
+    check of ``rigctl doctor``, the calibration of ``rigctl calibrate loadcell``, on hardware)."""
+    click.prompt(f"put the {mass_g:g} g reference mass on the load cell, then press Enter" if mass_g
+                 else "take the reference mass off the load cell, then press Enter", default="", show_default=False,
+                 err=True)
