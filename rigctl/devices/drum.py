@@ -56,6 +56,7 @@ from rigctl.devices.errors import (
     DrumContactTooStiff,
     DrumError,
     DrumFault,
+    DrumHomeRefused,
     DrumNotHomed,
     DrumTimeout,
     DrumWaitAborted,
@@ -860,8 +861,15 @@ class DrumClient:
         self.command(Command.TARE)
 
     def home(self) -> None:
-        """Drive the actuator to its home switch (HOMING, then IDLE)."""
-        self.command(Command.HOME)
+        """Drive the actuator to its home switch (HOMING, then IDLE). DrumHomeRefused: refused (exception 03), with
+        why from the state the controller refused it in (:class:`rigctl.devices.errors.DrumHomeRefused`)."""
+        try:
+            self.command(Command.HOME)
+        except ModbusExceptionError as exc:
+            if exc.exception_code != 3:
+                raise
+            state = int(self.read_status().state)
+            raise DrumHomeRefused(exc.register, exc.function_code, exc.exception_code, exc.value, state) from None
 
     def clear_fault(self) -> None:
         """Clear latched faults and leave FAULT for IDLE."""

@@ -12,6 +12,7 @@ from rigctl.core.drum import (
     DrumError as DrumError,
     DrumFault as DrumFault,
     DrumReset as DrumReset,
+    DrumState,
     DrumTimeout as DrumTimeout,
     DrumWaitAborted as DrumWaitAborted,
     SetpointRangeError as SetpointRangeError,
@@ -55,6 +56,35 @@ class DrumNotHomed(ModbusExceptionError):
         super().__init__(register, function_code, exception_code, value)
         self.args = (f"{self.args[0]}: the controller is NOT_HOMED (it was reset, e-stopped or HOME failed since it "
                      "was last homed): HOME it first",)
+
+
+class DrumHomeRefused(ModbusExceptionError):
+    """HOME was refused (docs/wire-protocol.md 2.4's command table and its guards), and why, in the operator's
+    words, from the controller's state when it refused (``state``, a :class:`rigctl.core.drum.DrumState` value): while
+    it moves or presses (STOP first), in FAULT (acknowledge first), or NOT_HOMED with the load cell loaded past
+    FORCE_LIMIT_G + 2 x FORCE_TOLERANCE_G (HOME from an unknown position never moves into a load, spec 2.11: issue
+    75's reversed actuator after a reset under 1,450 g with the cell's zero 250 g off the stored one was refused so,
+    and the operator read only "Modbus exception 3")."""
+
+    def __init__(self, register: str, function_code: int, exception_code: int, value: Any = None,
+                 state: int = -1) -> None:
+        super().__init__(register, function_code, exception_code, value)
+        self.state = state
+        if state == DrumState.NOT_HOMED:
+            why = ("the load cell reads the sensor loaded past FORCE_LIMIT_G + 2 x FORCE_TOLERANCE_G (against its "
+                   "tare, or after a reset the zero stored with the calibration), and HOME from an unknown position "
+                   "never moves into a load: nothing moved. Take the load off by hand: switch the rig off, turn the "
+                   "actuator's lead screw away from the sensor until nothing presses it, switch on and start again. "
+                   "If nothing presses the sensor and HOME is still refused, the load cell's zero has moved since the "
+                   "calibration (a mount changed, the cell overloaded): recalibrate it (rigctl calibrate loadcell)")
+        elif state == DrumState.FAULT:
+            why = "a fault is latched: acknowledge it first (its cause found), then start again"
+        elif state in (DrumState.HOMING, DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED, DrumState.RUNNING):
+            why = (f"the controller is {DrumState(state).name}: STOP first (the release backs the actuator off), "
+                   "then HOME")
+        else:
+            why = "the controller refused it in its present state"
+        self.args = (f"HOME refused: {why} ({self.args[0]})",)
 
 
 class DrumContactTooStiff(ModbusExceptionError):

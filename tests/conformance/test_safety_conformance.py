@@ -109,6 +109,35 @@ def test_reset_under_load_is_latched_and_never_keeps_a_false_zero(drum, controll
     released(drum, controller)
 
 
+
+def test_home_refused_under_load_says_why_and_what_to_do(drum, controller):
+    """After a reset under 1000 g, acknowledged (NOT_HOMED, not tared), a further 700 g on the cell (a mount's zero
+    moved, a hand): the load against the zero stored with the calibration is past FORCE_LIMIT_G + 2 x FORCE_TOLERANCE_G,
+    so HOME from an unknown position is refused and nothing moves (spec 2.11). The client says why in the operator's
+    words and how to take the load off (issue 75's reversed actuator after a reset under load with the cell's zero
+    250 g off: the operator read only "Modbus exception 3"). The load taken off, HOME runs."""
+    from rigctl.devices.errors import DrumHomeRefused
+
+    boot0 = settle(drum, 1000).boot_count
+    controller.reset("brownout")
+    after_reset(drum, controller, boot0, ResetCause.BROWN_OUT, latched=True)
+    with pytest.raises(DrumHomeRefused, match="HOME refused: a fault is latched: acknowledge it first"):
+        drum.home()
+    drum.clear_fault()
+    controller.place_mass(700.0)
+    silent(controller, 300)  # the HX711's readings settle on it
+    x = physically_still(controller)
+    with pytest.raises(DrumHomeRefused, match="HOME refused: the load cell reads the sensor loaded past") as info:
+        drum.home()
+    assert "turn the actuator's lead screw away from the sensor" in str(info.value)
+    assert "rigctl calibrate loadcell" in str(info.value) and info.value.exception_code == 3
+    assert drum.read_status().state == S.NOT_HOMED and physically_still(controller) == x
+    controller.place_mass(0.0)
+    silent(controller, 300)
+    drum.home()
+    st = drum.wait_state(S.IDLE, timeout_s=30)
+    assert st.homed and controller.load_g() <= TOL
+
 def test_reversed_load_cell_faults_at_once_and_calibrates_negative(drum, controller):
     """A load cell mounted the other way reads negative while pressing: LOADCELL_REVERSED within -2 x
     FORCE_TOLERANCE_G (the physical force stays small), the actuator backs off home. Calibrated with a negative
