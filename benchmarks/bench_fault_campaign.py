@@ -206,15 +206,19 @@ class AdviceWalk:
         #: the parts the walk left wired the wrong way that were right when it began (a coil pair or A+/A- swapped on
         #: a part that was not the fault): advice worse than the fault
         self.miswired: list[str] = []
+        #: each round's latch as the walker read it: (the model's time, s; the controller's fault bits; the rig's
+        #: latch causes, rigctl.acquisition.safety.CAUSES keys)
+        self.rounds: list[tuple[float, int, tuple[str, ...]]] = []
 
     def actions(self, faults: int) -> list[str]:
         """What the advice of ``faults`` (the controller's fault bits) has the operator do before acknowledging, done
-        on the model rig, by its words: ACTUATOR_DIRECTION's "with nothing touching the sensor, read FORCE_G: far
-        from 0 g ... recalibrate ... change no wire. Else press the load cell by hand 3 times ... If they all fall ...
-        swap A+ and A- ... If they all rise ... watch the lead screw while the start's HOME creeps" (the doctor's hand
-        presses: :meth:`_hand_presses`; the watch: :meth:`watch_the_screw`), LOADCELL_REVERSED's "press the load
-        cell by hand 3 times ... If they all fall ... swap A+ and A-", FORCE_LIMIT's "lower
-        the force setpoint" (by a fifth), HX711_STUCK's
+        on the model rig, by its words: ACTUATOR_DIRECTION's and LOADCELL_REVERSED's "with nothing touching the
+        sensor, read FORCE_G: far from 0 g ... recalibrate ... change no wire. Else press the load cell by hand 3 times
+        ... If they all fall ... swap A+ and A- ..." and ACTUATOR_DIRECTION's "If they all rise ... watch the lead
+        screw while the start's HOME creeps" (the doctor's hand presses: :meth:`_hand_presses`; the watch:
+        :meth:`watch_the_screw`), FORCE_LIMIT's "lower
+        the force setpoint" (by a fifth), HX711_RATE's "accept 10 SPS ... set_hx711_rate" (the rate the board
+        measured), HX711_STUCK's
         "Power-cycle the rig" (the controller powers on again, the HX711 with it); every other advice is a check,
         which finds nothing (the fault is a single hidden one)."""
         from rigctl.core.drum import FAULT_WORDS, Fault, ResetCause
@@ -225,22 +229,28 @@ class AdviceWalk:
             if not faults & int(bit) or bit not in FAULT_WORDS:
                 continue
             advice = FAULT_WORDS[bit].advice
-            if "by hand" in advice and "watch the lead screw" in advice:
+            if "with nothing touching the sensor" in advice.lower():  # "read FORCE_G: far from 0 g ... no wire"
                 at_rest_g = float(self.rig.drum.read_status().force_g)
                 if model.contact_force_g < CONTACT_G and abs(at_rest_g) > AT_REST_FAR_G:  # what the operator sees
                     done.append(f"{bit.name}: FORCE_G {at_rest_g:+.0f} g with nothing touching: recalibration "
                                 "asked, no wire changed")
                     continue
-                if self._hand_presses(bit.name, done) == "rise":  # the cell right: the screw watched, no wire yet
+            if "by hand" in advice and "watch the lead screw" in advice:
+                if self._hand_presses(str(bit.name), done) == "rise":  # the cell right: the screw watched, no wire yet
                     self.watch = True
                     done[-1] += ", the screw to be watched at the start"
             elif "by hand" in advice and "swap A+ and A-" in advice:  # LOADCELL_REVERSED: "If they all fall ... swap"
-                if self._hand_presses(bit.name, done) == "rise":
+                if self._hand_presses(str(bit.name), done) == "rise":
                     done[-1] += ", changed no wire (recalibration asked)"
             elif "recalibrate with the reference mass" in advice:
                 self.recalibrate = True
                 done.append(f"{bit.name}: checked the cell, found nothing; recalibration with the reference mass "
                             "after the acknowledgement")
+            elif "set_hx711_rate" in advice:  # HX711_RATE: "accept 10 SPS ... DrumClient.set_hx711_rate(10)"
+                measured = float(self.rig.drum.read_status().hx711_rate_sps)
+                sps = min((10, 80), key=lambda r: abs(r - measured))
+                self.rig.drum.set_hx711_rate(sps)
+                done.append(f"{bit.name}: the board's rate accepted: set_hx711_rate({sps})")
             elif "lower the force setpoint" in advice:
                 self.force_g = max(100.0, 0.8 * self.force_g)
                 done.append(f"{bit.name}: setpoint lowered to {self.force_g:.0f} g")
@@ -327,6 +337,9 @@ class AdviceWalk:
                 return
             if st.state != DrumState.FAULT and rig.safety.latch is None:
                 return
+            latch = rig.safety.latch
+            self.rounds.append((float(rig.backend.engine.model.time_s), int(st.faults),
+                                latch.causes if latch is not None else ()))
             self.steps.extend(self.actions(int(st.faults)))
             try:
                 rig.acknowledge(WALK_REASON, by="advice walker")
@@ -383,7 +396,8 @@ def run_model_case(case: Case, folder: Path, as_built: bool = True, walk_advice:
                 walk.run()
     out = result(case, truth.array(), truth.latch_spans, script, open_error, time.perf_counter() - t_wall)
     if walk is not None:
-        out["advice_walk"], out["advice_miswired"] = walk.steps, walk.miswired
+        out["advice_walk"], out["advice_miswired"], out["advice_rounds"] = walk.steps, walk.miswired, walk.rounds
+        out["fault_started_s"] = backend.engine.faults.started_s.get(case.fault)  # type: ignore[attr-defined]
     return out
 
 

@@ -43,11 +43,12 @@ from rigctl.core.drum import (
     DrumFault,
     DrumReset,
     Fault,
+    Part,
     describe_faults,
 )
 
 __all__ = ["Latch", "Acknowledgement", "ConfigResolution", "LatchedFault", "DrumStall", "SafetyLatch", "SafetyLog", "latch_for",
-           "latch_from_faults", "CAUSES", "operator_name", "safety_log_path"]
+           "latch_from_faults", "CAUSES", "CAUSE_PARTS", "operator_name", "safety_log_path"]
 
 log = logging.getLogger(__name__)
 
@@ -57,46 +58,85 @@ _CRUSH = f" ({CRUSH_NOTE})"
 #: every latch cause: (label, what the operator does before acknowledging)
 CAUSES: dict[str, tuple[str, str]] = {
     "estop": ("e-stop", "release the e-stop"),
-    "force-limit": ("force limit exceeded", "check the plate and the sensor, lower the force setpoint" + _CRUSH),
-    "reversed-cell": ("load cell reversed", HAND_PRESS_STEP + ": if they all fall, swap A+/A- at the HX711 (or turn "
-                      "the cell over); if they all rise, change no wire and recalibrate it (its zero or scale is "
-                      "wrong)" + _CRUSH),
+    "force-limit": ("force limit exceeded", "check the plate and the sensor, the actuator's coupling (its set screws) "
+                    "and the HX711's DOUT and SCK wires, then lower the force setpoint" + _CRUSH),
+    "reversed-cell": ("load cell reversed", "with nothing touching the sensor read FORCE_G: far from 0 g, its zero "
+                      "moved: recalibrate the load cell and change no wire; else " + HAND_PRESS_STEP + ": if they "
+                      "all fall, swap A+/A- at the HX711 (or turn the cell over); if they all rise, change no wire "
+                      "and recalibrate it with the right calibration mass (its scale is wrong)" + _CRUSH),
     "watchdog": ("host watchdog expired", "make sure the host program and its USB link are alive"),
-    "loadcell-timeout": ("load cell not responding", "check the HX711's wiring"),
+    "loadcell-timeout": ("load cell not responding", "check the HX711's DOUT and SCK wires and its supply, then the "
+                                                     "board itself"),
     "actuator-direction": ("actuator turning the wrong way or load cell reversed",
                            "with nothing touching the sensor read FORCE_G: far from 0 g, recalibrate the load cell and "
                            "change no wire; else " + HAND_PRESS_STEP + ": if they all fall, the cell "
-                           "is reversed: swap A+/A- at the HX711, not the motor's coils; if they all rise, watch the lead "
-                           "screw while HOME creeps and swap one coil pair of the actuator motor only if you see it "
-                           "close the gap to the sensor (rigctl doctor --check actuator-direction)" + _CRUSH),
-    "actuator-travel": ("actuator end of travel", "mount a plate, check the gap between drum and sensor (and that "
-                                                  "the actuator turns the right way: a reversed motor drives into its "
-                                                  "rear stop while its steps count on)"),
-    "home-failed": ("HOME failed", "check the home switch and its wire"),
+                           "is reversed: swap A+/A- at the HX711, not the motor's coils; if they all rise, watch the "
+                           "lead screw while HOME creeps: moving the right way, change no wire and check the home "
+                           "switch and its wire; only if you see it close the gap to the sensor swap one coil pair of "
+                           "the actuator motor (rigctl doctor --check actuator-direction)" + _CRUSH),
+    "actuator-travel": ("actuator end of travel", "mount a plate, check the gap between drum and sensor, the "
+                                                  "actuator's coupling (its set screws), the load cell's wires (A+, "
+                                                  "A-, E+, E-) and that the actuator turns the right way (a coil "
+                                                  "pair swapped drives it into its rear stop while its steps count "
+                                                  "on)"),
+    "home-failed": ("HOME failed", "check the home switch and its wire, then that the lead screw turns freely and the "
+                                   "driver is enabled"),
     "hx711-rate": ("wrong HX711 rate", "set the HX711's RATE pin (or the rig config's force_loop) to match"),
     "reset": ("controller reset", "check the controller's power and reset line, and that nothing presses the sensor"),
-    "stall": ("drum stalled or slipping", "free the drum (nothing may block it), check its coupling, the stepper and "
-              "its driver's current"),
-    "contact-stiffness": ("contact too stiff", "use a softer sensor mount or pad, or store slower force-loop gains (the "
-                          "rig config's force_loop)" + _CRUSH),
-    "position-limit": ("pressed past the contact's limit", "check the load cell, its HX711 and their wires (rigctl "
-                                                           "doctor): the reading disagreed with the position" + _CRUSH),
-    "hx711-stuck": ("load-cell reading frozen", "power-cycle the rig, check the HX711 and its wires" + _CRUSH),
-    "hx711-line": ("load-cell line fault", "check the load cell's and the HX711's wires (E+, E-, A+, A-, SCK, DOUT)"
-                   + _CRUSH),
+    "stall": ("drum stalled or slipping", "check the drum's drive (its coupling, the stepper and its driver's "
+              "current) and free the drum (nothing may block it)"),
+    "contact-stiffness": ("contact too stiff", "use a softer plate, sensor mount or pad, or store slower force-loop "
+                          "gains (the rig config's force_loop)" + _CRUSH),
+    "position-limit": ("pressed past the contact's limit", "the reading disagreed with the position: check the plate "
+                       "or mount (changed since the probe), the HX711's DOUT and SCK wires, the calibration mass, "
+                       "that no coil pair of the actuator is swapped, then a frozen HX711 (rigctl doctor)" + _CRUSH),
+    "hx711-stuck": ("load-cell reading frozen", "power-cycle the rig, then check the HX711's DOUT and SCK wires"
+                    + _CRUSH),
+    "hx711-line": ("load-cell line fault", "check the HX711's SCK and DOUT wires, then the load cell's (E+, E-, A+, "
+                   "A-)" + _CRUSH),
     "hx711-cadence": ("load-cell readings too fast", "check the HX711's SCK and DOUT wires" + _CRUSH),
-    "contact-lost": ("contact lost while the force held", "check the load cell and the HX711: the reading did not "
-                                                          "follow the contact" + _CRUSH),
+    "contact-lost": ("contact lost while the force held", "the reading did not follow the contact: remove anything "
+                     "resting on the sensor or the actuator, check the HX711's DOUT and SCK wires, then a frozen "
+                     "HX711" + _CRUSH),
     "loadcell-scale": ("the reading's scale disagrees with the stiffness stored at calibration",
-                       "a plate or mount changed since the calibration, the actuator losing steps (its coupling), "
-                       "a frozen reading or the cell's scale: check them in that order, then recalibrate with the "
+                       "a plate or mount changed since the calibration, the actuator's coupling (its set screws), the "
+                       "HX711's DOUT and SCK wires, the load cell's wires (E+, E-, A+, A-), a wrong calibration mass, "
+                       "the lead screw binding, the cell itself: check them in that order, then recalibrate with the "
                        "reference mass (the GUI's calibration tab)" + _CRUSH),
     "loadcell-zero": ("the load cell read a force with nothing pressing",
-                      "remove anything resting on the sensor or the actuator, check the cell's mount, its cable and "
-                      "the HX711's wires (its zero moved); the start HOMEs and tares again" + _CRUSH),
-    "contact-missing": ("no force where the contact was", "check the actuator's coupling and lead screw (a slipping "
-                        "coupling, lost steps), then the load cell and its wires (a broken cell reads no load), then "
-                        "the plate (changed: HOME)" + _CRUSH),
+                      "remove anything resting on the sensor or the actuator; else its zero moved: check the cell's "
+                      "mount, then the HX711's DOUT and SCK wires and the cell's cable (E+, E-, A+, A-); the start "
+                      "HOMEs and tares again" + _CRUSH),
+    "contact-missing": ("no force where the contact was", "check the plate (removed or changed: HOME), the actuator's "
+                        "coupling (its set screws), the load cell's wires (E+, E-, A+, A-: a cell that reads no "
+                        "load), that the lead screw turns freely, then the cell itself" + _CRUSH),
+}
+
+#: the parts each latch cause's remedy (:data:`CAUSES`) names, in the order it names them: most likely first
+#: (rigctl.core.drum.less_likely_first; its exceptions in rigctl.core.drum.ADVICE_ORDER_EXCEPTIONS); issue 75 item 4
+CAUSE_PARTS: dict[str, tuple[Part, ...]] = {
+    "estop": (Part.E_STOP,),
+    "force-limit": (Part.PLATE, Part.COUPLING, Part.HX711_WIRES, Part.SETPOINT),
+    "reversed-cell": (Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.CALIBRATION),
+    "watchdog": (Part.HOST_LINK,),
+    "loadcell-timeout": (Part.HX711_WIRES, Part.HX711_CHIP),
+    "actuator-direction": (Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.HOME_SWITCH,
+                           Part.ACTUATOR_COILS),
+    "actuator-travel": (Part.PLATE, Part.COUPLING, Part.LOADCELL_WIRING, Part.ACTUATOR_COILS),
+    "home-failed": (Part.HOME_SWITCH, Part.LEAD_SCREW, Part.DRIVER),
+    "hx711-rate": (Part.HX711_RATE_PIN, Part.RIG_CONFIG),
+    "reset": (Part.CONTROLLER_POWER,),
+    "stall": (Part.DRUM_DRIVE, Part.DRUM_BLOCKED),
+    "contact-stiffness": (Part.PLATE, Part.RIG_CONFIG),
+    "position-limit": (Part.PLATE, Part.HX711_WIRES, Part.CALIBRATION, Part.ACTUATOR_COILS, Part.HX711_CHIP),
+    "hx711-stuck": (Part.HX711_CHIP, Part.HX711_WIRES),
+    "hx711-line": (Part.HX711_WIRES, Part.LOADCELL_WIRING),
+    "hx711-cadence": (Part.HX711_WIRES,),
+    "contact-lost": (Part.LOAD_ON_SENSOR, Part.HX711_WIRES, Part.HX711_CHIP),
+    "loadcell-scale": (Part.PLATE, Part.COUPLING, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.CALIBRATION,
+                       Part.LEAD_SCREW, Part.LOADCELL),
+    "loadcell-zero": (Part.LOAD_ON_SENSOR, Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING),
+    "contact-missing": (Part.PLATE, Part.COUPLING, Part.LOADCELL_WIRING, Part.LEAD_SCREW, Part.LOADCELL),
 }
 
 #: the cause of each controller fault bit (the first that is set names the latch)

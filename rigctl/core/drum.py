@@ -36,7 +36,8 @@ __all__ = [
     "DRUM_DIAMETER_MM", "DRUM_STEPS_PER_REV", "DRUM_MICROSTEPS", "DRUM_CIRCUMFERENCE_MM", "DRUM_SPEED_TOLERANCE",
     "DRUM_MARKS_PER_REV", "DRUM_SLIP_TOLERANCE",
     "STATE_TEXT", "FAULT_WORDS", "ACTUATOR_DIRECTION_CAUSES", "CRUSH_FAULTS", "CRUSH_NOTE",
-    "FaultWords", "describe_state", "describe_faults", "fault_advice",
+    "FaultWords", "Part", "PartRating", "PARTS", "ADVICE_ORDER_EXCEPTIONS", "less_likely_first", "named_at",
+    "describe_state", "describe_faults", "fault_advice",
     "HAND_PRESSES", "HAND_PRESS_AGREE", "HAND_PRESS_STEP", "hand_press_verdict",
     "PRESSING_G", "HOME_TOLERANCE_MM", "actuator_words", "status_line",
     "DrumError", "DrumTimeout", "DrumWaitAborted", "DrumFault", "DrumReset", "SetpointRangeError", "Clock",
@@ -133,13 +134,169 @@ STATE_TEXT: dict[DrumState, str] = {
     DrumState.FAULT: "FAULT - drum stopped, motion refused until CLEAR_FAULT",
     DrumState.NOT_HOMED: "Not homed - reset, e-stopped or homing failed: HOME before pressing",
 }
+class Part(enum.Enum):
+    """A part of the rig (or a setting) an advice can send the operator to (issue 75 item 4): the FMEA's parts, each
+    with its occurrence rating and the words an advice names it by in :data:`PARTS`. An advice's causes
+    (:attr:`FaultWords.causes`, ``rigctl.acquisition.safety.CAUSE_PARTS``) are a tuple of these, in the order its
+    words name them: the most likely first (:func:`less_likely_first`)."""
+
+    PLATE = "plate"
+    HX711_RATE_PIN = "hx711-rate-pin"
+    LOADCELL_ZERO = "loadcell-zero"
+    LOAD_ON_SENSOR = "load-on-sensor"
+    COUPLING = "coupling"
+    HX711_WIRES = "hx711-wires"
+    LOADCELL_WIRING = "loadcell-wiring"
+    CALIBRATION = "calibration"
+    SETPOINT = "setpoint"
+    HOST_LINK = "host-link"
+    E_STOP = "e-stop"
+    DRUM_DRIVE = "drum-drive"
+    LEAD_SCREW = "lead-screw"
+    HOME_SWITCH = "home-switch"
+    RIG_CONFIG = "rig-config"
+    DRUM_BLOCKED = "drum-blocked"
+    ACTUATOR_COILS = "actuator-coils"
+    DRUM_COILS = "drum-coils"
+    DRIVER = "driver"
+    CONTROLLER_POWER = "controller-power"
+    HX711_CHIP = "hx711-chip"
+    LOADCELL = "loadcell"
+
+
+class PartRating(NamedTuple):
+    """A :class:`Part`'s row of the FMEA's occurrence ratings (docs/safety.md, "Occurrence"): ``words`` (the part and
+    how it fails, for the table), ``occurrence`` (the FMEA's O, 1-10: how often a lab meets that failure; 10 every
+    week, 1 hardly ever), ``names`` (the phrases, case-sensitive, an advice names it by: the first found in an advice
+    is where it names the part), ``source`` (where the rating comes from: a public issue thread, a note, or
+    "judgement")."""
+
+    words: str
+    occurrence: int
+    names: tuple[str, ...]
+    source: str
+
+
+#: every part's occurrence rating, the one home (docs/safety.md's "Occurrence" table is this, verbatim:
+#: tests/core/test_core_advice_causes.py); most likely first
+PARTS: dict[Part, PartRating] = {
+    Part.PLATE: PartRating(
+        "the plate, sample, sensor pad or mount: changed, removed or swapped since the calibration or the probe", 8,
+        ("plate",),
+        "judgement: a protocol changes plates every session by hand (a run's plate change); LOADCELL_SCALE's own "
+        "campaign row (a plate swap)"),
+    Part.HX711_RATE_PIN: PartRating(
+        "the HX711 board's RATE pin: at 10 SPS where the force loop is set for 80", 7, ("RATE pin",),
+        "/work/shared/notes/bench-facts.md: many HX711 boards ship at 10 SPS (RATE pin low)"),
+    Part.LOADCELL_ZERO: PartRating(
+        "the load cell's zero: drift, a tare taken under load, a mount's preload changed", 7,
+        ("far from 0 g", "zero moved", "zero or scale"),
+        "bogde/HX711#51 (\"drift is pretty normal with load cells, due to temperature and mechanical settling\"); "
+        "montalvo.com, causes and cures for load cell zero-drift (mounting preload)"),
+    Part.LOAD_ON_SENSOR: PartRating(
+        "something resting on the sensor or the actuator: a hand, a tool, debris", 6, ("resting on the sensor",),
+        "judgement: the operator's hands and tools are at the sensor at every plate change"),
+    Part.COUPLING: PartRating(
+        "the actuator's coupling and its set screws: slipping, loose", 6, ("coupling",),
+        "AndrewEllis93/Print-Tuning-Guide#14 (a loose set screw behind layer shifts); Caribou3d/CaribouCartesian#13 "
+        "(grub screws that loosened by themselves)"),
+    Part.HX711_WIRES: PartRating(
+        "the HX711's DOUT and SCK wires: loose, broken, picking up interference", 6,
+        ("DOUT and SCK", "SCK and DOUT", "DOUT or SCK"),
+        "bogde/HX711#162 (header pins not soldered: spikes, no change with weight); ranenbg/Arduino-FFB-wheel#39 "
+        "(\"probably some loose connection ... DT and CLK\")"),
+    Part.LOADCELL_WIRING: PartRating(
+        "the load cell's wires (E+, E-, A+, A-): swapped, an open joint, an excitation lead", 5, ("A+", "E+"),
+        "dangrie158/opencushion#8 (erratic readings from a bridge wired wrong); ranenbg/Arduino-FFB-wheel#39 (A+/A- "
+        "reversed); /work/shared/notes/bench-facts.md (A+/A- or E+/E- swapped reverses every reading)"),
+    Part.CALIBRATION: PartRating(
+        "the calibration: a wrong mass entered, a tare under load, a stale scale", 5, ("calibration mass",),
+        "judgement: a person types the mass and places it; docs/safety.md common causes (a wrong calibration saved "
+        "with a valid checksum)"),
+    Part.SETPOINT: PartRating(
+        "the force setpoint: near FORCE_LIMIT on a stiff contact", 5, ("setpoint",),
+        "judgement: docs/safety.md (fault-free presses near the limit on stiff mounts latched FORCE_LIMIT, issue 75)"),
+    Part.HOST_LINK: PartRating(
+        "the host program and its USB link: killed, crashed, a cable pulled", 5, ("USB",),
+        "/work/shared/notes/field-notes.md (pyserial #341: an unplugged USB serial device)"),
+    Part.E_STOP: PartRating(
+        "the e-stop and its normally-closed wire", 5, ("e-stop",),
+        "judgement: pressed as meant by the operator; its wire broken far less often"),
+    Part.DRUM_DRIVE: PartRating(
+        "the drum's drive: its coupling or grub screw, a belt, its stepper's current", 5, ("grub screw", "its coupling"),
+        "as the actuator's coupling (AndrewEllis93/Print-Tuning-Guide#14); judgement for the current"),
+    Part.LEAD_SCREW: PartRating(
+        "the lead screw and the actuator motor: binding, losing steps (too little current)", 4, ("lead screw",),
+        "M-Prime/M_Prime_One#1 (a worn screw and nut jamming the axis); judgement"),
+    Part.HOME_SWITCH: PartRating(
+        "the home switch and its wire: stuck closed, broken", 4, ("home switch",),
+        "judgement: a switch and a wire on the moving axis"),
+    Part.RIG_CONFIG: PartRating(
+        "the rig config's force_loop block: gains or rate for another board", 4, ("force_loop",),
+        "judgement"),
+    Part.DRUM_BLOCKED: PartRating(
+        "something blocking the drum", 4, ("blocks it", "may block it"),
+        "judgement"),
+    Part.ACTUATOR_COILS: PartRating(
+        "the actuator motor's coil pairs: one swapped (a connector turned, a rewiring)", 3, ("coil pair",),
+        "judgement: wired once at the build; docs/safety.md (the walker found good motors rewired by advice, "
+        "far more often than a bad one)"),
+    Part.DRUM_COILS: PartRating(
+        "the drum motor's coil pairs: one swapped", 3, ("coil pair of the drum",),
+        "judgement: wired once at the build"),
+    Part.DRIVER: PartRating(
+        "the actuator's driver: its EN line stuck, its current set wrong", 3, ("driver",),
+        "judgement"),
+    Part.CONTROLLER_POWER: PartRating(
+        "the controller's power and reset line: a brown-out, a reset pulse", 3, ("power and reset",),
+        "/work/shared/notes/field-notes.md (ArduinoModbus #98: opening the port resets the board); judgement"),
+    Part.HX711_CHIP: PartRating(
+        "the HX711 chip itself: hung, failed", 2, ("Power-cycle", "power-cycle", "frozen HX711", "the board itself"),
+        "ranenbg/Arduino-FFB-wheel#39 (\"low chance that HX711 or load cell died just like that\")"),
+    Part.LOADCELL: PartRating(
+        "the load cell itself: broken, overloaded, creeping, of another range", 2, ("cell itself", "broken cell"),
+        "ranenbg/Arduino-FFB-wheel#39 (a failed cell is the unlikely cause); /work/shared/notes/bench-facts.md "
+        "(a cell of another range)"),
+}
+
+#: where an advice deliberately names a less likely part before a likelier one, the one place that says so and why:
+#: (the advice's key: a fault bit's name or a host latch cause, the part named early) -> why. Every other advice
+#: names its parts most likely first (:func:`less_likely_first`)
+ADVICE_ORDER_EXCEPTIONS: dict[tuple[str, Part], str] = {
+    ("HX711_STUCK", Part.HX711_CHIP): "the power cycle is quick, harmless and changes no wire: it comes before "
+                                      "looking at the wires, and clears a hung chip",
+    ("hx711-stuck", Part.HX711_CHIP): "as HX711_STUCK's",
+    ("LOADCELL_ZERO", Part.LOAD_ON_SENSOR): "looking at the sensor is quick and harmless, and what rests on it is "
+                                            "what the next HOME's tare would take for the zero",
+    ("loadcell-zero", Part.LOAD_ON_SENSOR): "as LOADCELL_ZERO's",
+}
+
+
+def less_likely_first(key: str, causes: tuple[Part, ...]) -> list[tuple[Part, Part]]:
+    """The pairs ``(a, b)`` of ``causes`` (an advice's parts, in the order it names them; ``key`` its fault bit's name
+    or host cause) where ``a`` is named before ``b`` but is less likely (:data:`PARTS` occurrence) and no
+    :data:`ADVICE_ORDER_EXCEPTIONS` entry says why; ``[]``: most likely first, ties allowed."""
+    return [(a, b) for i, a in enumerate(causes) for b in causes[i + 1:]
+            if PARTS[a].occurrence < PARTS[b].occurrence and (key, a) not in ADVICE_ORDER_EXCEPTIONS]
+
+
+def named_at(advice: str, part: Part) -> int:
+    """Where ``advice`` first names ``part`` (the index of the first of its :attr:`PartRating.names` found), -1 when it
+    does not."""
+    found = [i for i in (advice.find(n) for n in PARTS[part].names) if i >= 0]
+    return min(found) if found else -1
+
+
 class FaultWords(NamedTuple):
     """A fault bit in words: ``label`` (a few words, for a status line), ``meaning`` (spec table 2.5's, for an error
-    message), ``advice`` (what happened and what to do, for the operator)."""
+    message), ``advice`` (what happened and what to do, for the operator), ``causes`` (the parts the advice sends
+    the operator to, in the order its words name them: most likely first, :func:`less_likely_first`; issue 75
+    item 4)."""
 
     label: str
     meaning: str
     advice: str
+    causes: tuple[Part, ...] = ()
 
 
 #: the hand press that tells a reversed load cell from a right one, in one place (issue 75 item 4): repeated, and a
@@ -181,11 +338,14 @@ ACTUATOR_DIRECTION_CAUSES = (
     "cable pulled): recalibrate it (rigctl calibrate) and change no wire. Else " + HAND_PRESS_STEP + " (rigctl "
     "doctor --check actuator-direction does it on a simulated rig). If they all fall, the cell reads "
     "reversed (A+/A- swapped at the HX711): swap A+ and A- and leave the motor alone (swapping its coils would drive "
-    "HOME into the sensor). If they all rise, the cell is right, and that alone does not make the motor wrong: acknowledge "
-    "and watch the lead screw while the start's HOME creeps (it proves its way and stops where it is wrong). Only if "
-    "you see it close the gap to the sensor where it should open it, power off and swap one coil pair of the actuator "
-    "motor (1A/1B); if it moves the right way, change no wire: check the home switch and its wire and the HX711's "
-    "DOUT and SCK wires (a reading that jumps by itself). Then HOME")
+    "HOME into the sensor). If they all rise, the cell is right, and that alone does not make the motor wrong: "
+    "acknowledge and watch the lead screw while the start's HOME creeps (it proves its way and stops where it is "
+    "wrong). If it moves the right way, change no wire: check the home switch and its wire and the HX711's wires "
+    "again (a reading that jumps by itself). Only if you see it close the gap to the sensor where it should open it, "
+    "power off and swap one coil pair of the actuator motor (1A/1B). Then HOME")
+#: the parts ACTUATOR_DIRECTION's advice names, in its order (:data:`ACTUATOR_DIRECTION_CAUSES`)
+_ACTUATOR_DIRECTION_PARTS = (Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.HOME_SWITCH,
+                             Part.ACTUATOR_COILS)
 
 #: the crush class (issue 55): the faults that mean the sensor was, or could have been, pressed past what the rig
 #: allows (too much force, a force path that cannot be believed: the actuator's direction, a reversed cell, a contact
@@ -203,113 +363,142 @@ CRUSH_NOTE = ("a crush-class fault: opening the rig never clears it; acknowledge
 FAULT_WORDS: dict[Fault, FaultWords] = {
     Fault.FORCE_LIMIT: FaultWords(
         "force limit exceeded", "measured force exceeded FORCE_LIMIT_G",
-        "the measured force went above the controller's FORCE_LIMIT; the actuator backed off at once. Check the "
-        "plate and the sensor, then lower the force setpoint."),
+        "the measured force went above the controller's FORCE_LIMIT; the actuator backed off at once. In the order a "
+        "lab meets them: check the plate and the sensor (a stiffer plate or mount than before), the actuator's "
+        "coupling (a set screw that slips lets the screw jump forward when the motor holds) and the HX711's DOUT and "
+        "SCK wires (a reading that jumps by itself), then lower the force setpoint.",
+        (Part.PLATE, Part.COUPLING, Part.HX711_WIRES, Part.SETPOINT)),
     Fault.WATCHDOG: FaultWords(
         "host watchdog expired", "host went silent for longer than WATCHDOG_MS",
         "the controller heard nothing from the host for WATCHDOG_MS while the drum turned or the force loop held, "
-        "and stopped (a crashed or killed program, a pulled USB cable)."),
+        "and stopped (a crashed or killed program, a pulled USB cable).",
+        (Part.HOST_LINK,)),
     Fault.LOADCELL_TIMEOUT: FaultWords(
         "load cell not responding", "the load cell gave no reading for 200 ms",
-        "the load cell amplifier (HX711) gave no reading for 200 ms. Check its wiring."),
+        "the load cell amplifier (HX711) gave no reading for 200 ms. Check its DOUT and SCK wires and its supply "
+        "(VCC, GND), then the board itself.",
+        (Part.HX711_WIRES, Part.HX711_CHIP)),
     Fault.ACTUATOR_TRAVEL: FaultWords(
         "actuator end of travel before reaching force",
         "actuator reached its end of travel without reaching the force setpoint",
-        "the actuator reached its end of travel without reaching the force setpoint: no plate, or the sensor is too "
-        "far away."),
+        "the actuator reached its end of travel without reaching the force setpoint. In the order a lab meets them: "
+        "no plate, or the sensor is too far away (mount a plate, check the gap); the actuator's coupling slipping (its "
+        "steps count on, the screw stays: check its set screws); the load cell reading no load (an open bridge or "
+        "excitation wire: check A+, A-, E+, E- at the HX711); the actuator turning the wrong way (a coil pair swapped: "
+        "it drives into its rear stop while its steps count on; the start's HOME proves its way); the cell itself "
+        "broken.",
+        (Part.PLATE, Part.COUPLING, Part.LOADCELL_WIRING, Part.ACTUATOR_COILS, Part.LOADCELL)),
     Fault.ESTOP: FaultWords(
         "e-stop", "the e-stop input opened (pressed, or its wire is broken): drivers disabled",
         "the e-stop was pressed (or its normally-closed wire is broken): the stepper drivers were disabled at once "
         "and the drum and actuator stopped where they were. Release it, CLEAR_FAULT, then HOME (the position was "
-        "lost)."),
+        "lost).",
+        (Part.E_STOP,)),
     Fault.LOADCELL_REVERSED: FaultWords(
         "load cell reversed",
         "the force read negative while pressing: the load cell is mounted or wired the other way round, or its "
         "scale has the wrong sign",
         "the force went below -2 x FORCE_TOLERANCE_G while pressing. Tell the causes apart before changing any "
-        "wire: " + HAND_PRESS_STEP + ". If they all fall, the cell is mounted or wired the other way "
-        "round: swap A+ and A- at the HX711 (or turn the cell over), then recalibrate. If they all rise, the cell and its "
-        "wires are right and its zero or scale is not (a tare taken under load, a mount changed since calibration): "
-        "change no wire, recalibrate it (rigctl calibrate)."),
+        "wire, the most likely first. With nothing touching the sensor, read FORCE_G (the status line): far from 0 g, "
+        "the load cell's zero moved since its calibration (a tare taken under load, a mount changed): recalibrate it "
+        "(rigctl calibrate) and change no wire. Else " + HAND_PRESS_STEP + ". If they all fall, the cell is mounted "
+        "or wired the other way round: swap A+ and A- at the HX711 (or turn the cell over), then recalibrate. If "
+        "they all rise, the cell and its wires are right and its scale is not (a wrong calibration mass): change no "
+        "wire, recalibrate it (rigctl calibrate).",
+        (Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.CALIBRATION)),
     Fault.HOME_NOT_FOUND: FaultWords(
         "home switch not found",
         "HOME did not reach the home switch within its travel limit or timeout (a broken switch or wire, a stalled "
         "actuator)",
-        "HOME gave up after 25 mm or 10 s without the home switch closing: check the switch and its wire and that "
-        "the actuator moves, then CLEAR_FAULT and HOME."),
+        "HOME gave up after 25 mm or 10 s without the home switch closing: check the home switch and its wire, then "
+        "that the actuator moves (its lead screw turns freely, its driver is enabled), then CLEAR_FAULT and HOME.",
+        (Part.HOME_SWITCH, Part.LEAD_SCREW, Part.DRIVER)),
     Fault.HX711_RATE: FaultWords(
         "load-cell rate mismatch",
         "the load cell amplifier's measured rate is not the one the force loop is set for",
         "the HX711 converts at another rate than HX711_RATE_SPS (most boards ship at 10 SPS, RATE pin low; the "
         "default gains are for 80 SPS). Set the board's RATE pin high (80 SPS), or accept 10 SPS with its slower "
-        "gains (DrumClient.set_hx711_rate(10), or a force_loop block in the rig config), then CLEAR_FAULT."),
+        "gains (DrumClient.set_hx711_rate(10), or a force_loop block in the rig config), then CLEAR_FAULT.",
+        (Part.HX711_RATE_PIN, Part.RIG_CONFIG)),
     Fault.ACTUATOR_DIRECTION: FaultWords(
         "actuator turns the wrong way or load cell reversed",
         "the actuator moved the wrong way or the load cell reads reversed: HOME's switch did not open when leaving "
         "home, or the load on the cell (|raw - zero|, sign-free) grew while it moved home or backed off",
         "the load cell's reading rose while the firmware drove the actuator home or backed it off (or HOME's switch "
-        "did not open): it was stopped where it stood. " + ACTUATOR_DIRECTION_CAUSES + "; rigctl doctor checks it."),
+        "did not open): it was stopped where it stood. " + ACTUATOR_DIRECTION_CAUSES + "; rigctl doctor checks it.",
+        _ACTUATOR_DIRECTION_PARTS),
     Fault.DRUM_SLIP: FaultWords(
         "drum slipped or stalled",
         "the drum turned less than its steps say: more steps than one speed-mark interval allows passed without a "
         "mark (a stall, a slipping coupling, a stepper losing steps)",
         "the drum's speed marks came late or stopped while the stepper was stepped: the drum slips (a loose "
-        "coupling or grub screw, a belt) or stalls (something blocks it, too little motor current for the load). "
-        "Free the drum and fix the drive, then CLEAR_FAULT; the trial in progress was not recorded."),
+        "coupling or grub screw, a belt, too little motor current for the load) or stalls (something blocks it). "
+        "Fix the drive and free the drum, then CLEAR_FAULT; the trial in progress was not recorded.",
+        (Part.DRUM_DRIVE, Part.DRUM_BLOCKED)),
     Fault.CONTACT_STIFFNESS: FaultWords(
         "contact too stiff",
         "the contact stiffness the first press measured is more than the force loop holds with its gains",
         "the first press since the controller's reset measured the contact's stiffness (CONTACT_STIFFNESS_G_PER_MM) "
         "above what the force loop holds with its gains and the HX711's delay (STIFFNESS_MAX_G_PER_MM): it backed "
-        "off, and PRESS and RUN are refused. Use a softer sensor mount or pad, or store slower gains (the rig "
-        "config's force_loop block: the limit grows as Kp falls), then CLEAR_FAULT."),
+        "off, and PRESS and RUN are refused. Use a softer plate, sensor mount or pad, or store slower gains (the rig "
+        "config's force_loop block: the limit grows as Kp falls), then CLEAR_FAULT.",
+        (Part.PLATE, Part.RIG_CONFIG)),
     Fault.POSITION_LIMIT: FaultWords(
         "pressed past the contact's limit",
         "the actuator went further past the probed contact than FORCE_LIMIT_G allows at the measured stiffness, "
         "whatever the force read",
         "the actuator's position says the contact is pressed to the force limit (the travel past the contact the "
-        "press probed, times its stiffness) while the load cell read less: the reading is lying (a frozen or "
-        "disconnected HX711, a wrong scale), the contact changed, or the actuator does not go where its steps say "
-        "(a reversed motor). It stopped where it stood (a back-off's direction is unproven; the start's HOME "
-        "creeps and proves it). Check the load cell, its HX711 "
-        "and their wires (rigctl doctor), then CLEAR_FAULT."),
+        "press probed, times its stiffness) while the load cell read less. In the order a lab meets them: the "
+        "contact changed (a plate or mount swapped since the probe); the reading is lying (the HX711's DOUT or SCK "
+        "wire loose, a wrong calibration mass); the actuator does not go where its steps say (a coil pair swapped: "
+        "a reversed motor); a frozen HX711. It stopped where it stood (a back-off's direction is unproven; the "
+        "start's HOME creeps and proves it). Check them in that order (rigctl doctor), then CLEAR_FAULT.",
+        (Part.PLATE, Part.HX711_WIRES, Part.CALIBRATION, Part.ACTUATOR_COILS, Part.HX711_CHIP)),
     Fault.HX711_STUCK: FaultWords(
         "load-cell reading frozen",
         "the HX711 returned the same raw value too many times in a row (a real one at gain 128 never does: ~20-40 "
         "counts of noise)",
         "the HX711 gave the same 24 bits several readings in a row, which a working amplifier at gain 128 never "
         "does (its noise is 20-40 counts rms): the reading is frozen (a chip hung, a stuck data line). It backed "
-        "off. Power-cycle the rig and check the HX711 and its wires, then CLEAR_FAULT."),
+        "off. Power-cycle the rig (a hung chip starts again), then check the HX711's DOUT and SCK wires, then "
+        "CLEAR_FAULT.",
+        (Part.HX711_CHIP, Part.HX711_WIRES)),
     Fault.HX711_LINE: FaultWords(
         "load-cell line fault",
         "the HX711 returned a saturation code (0x7FFFFF, 0x800000) or an all-zero / all-one word twice (a broken "
         "SCK or DOUT wire)",
-        "the HX711 returned a code no working load cell gives: its output saturated (0x7FFFFF or 0x800000: an input "
-        "beyond range, a broken bridge wire) or a clock or data line is broken (0x000000 or 0xFFFFFF read twice). "
-        "It backed off. Check the load cell's and the HX711's wires (E+, E-, A+, A-, SCK, DOUT), then CLEAR_FAULT."),
+        "the HX711 returned a code no working load cell gives: a clock or data line is broken (0x000000 or 0xFFFFFF "
+        "read twice) or its input saturated (0x7FFFFF or 0x800000: a broken bridge wire, an input beyond range). It "
+        "backed off. Check the HX711's SCK and DOUT wires, then the load cell's (E+, E-, A+, A-), then the cell "
+        "itself; then CLEAR_FAULT.",
+        (Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.LOADCELL)),
     Fault.HX711_CADENCE: FaultWords(
         "load-cell readings too fast",
         "the HX711's DOUT said 'ready' sooner than its measured rate allows (a clock wire that never clocks holds "
         "DOUT low)",
         "the HX711's data-ready came faster than its measured rate: its SCK wire is broken (DOUT stays low and "
-        "every read returns the same bits) or DOUT is shorted low. It backed off. Check SCK and DOUT, then "
-        "CLEAR_FAULT."),
+        "every read returns the same bits) or DOUT is shorted low. It backed off. Check the HX711's SCK and DOUT "
+        "wires, then CLEAR_FAULT.",
+        (Part.HX711_WIRES,)),
     Fault.CONTACT_LOST: FaultWords(
         "contact lost while the force held",
         "the force loop held its force while the actuator's position left the probed contact (a reading that does "
         "not follow the contact)",
         "the load cell kept reading the force while the actuator moved back off the contact the press probed: the "
-        "reading is not the contact's (frozen, or the load cell is loaded by something else). The trial is not "
-        "recorded; it stopped where it stood (the channels disagree: a back-off's direction is unproven; the start's "
-        "HOME creeps and proves it). Check the load cell and the HX711, then CLEAR_FAULT."),
+        "reading is not the contact's. In the order a lab meets them: something resting on the sensor or the "
+        "actuator (the load cell loaded by something else); the HX711's DOUT or SCK wire loose; a frozen HX711. The "
+        "trial is not recorded; it stopped where it stood (the channels disagree: a back-off's direction is "
+        "unproven; the start's HOME creeps and proves it). Check them in that order, then CLEAR_FAULT.",
+        (Part.LOAD_ON_SENSOR, Part.HX711_WIRES, Part.HX711_CHIP)),
     Fault.RESET: FaultWords(
         "controller reset",
         "the controller reset while its actuator was away from home (its warm-boot record), or powered up with the "
         "load cell loaded against its stored zero, or holds such a latch from before a power cycle",
-        "the drum controller was reset (power, its reset line, a port opening, its own watchdog) while the actuator "
-        "may have been pressing: it latched this itself, so every program that opens the rig finds it, and it moves "
-        "nothing. Check the controller's power and reset line and that nothing presses the sensor, then CLEAR_FAULT; "
-        "the start after it HOMEs from an unknown position (creeping, its way proven)."),
+        "the drum controller was reset (a brown-out, its reset line, a port opening, its own watchdog) while the "
+        "actuator may have been pressing: it latched this itself, so every program that opens the rig finds it, and "
+        "it moves nothing. Check the controller's power and reset line and that nothing presses the sensor, then "
+        "CLEAR_FAULT; the start after it HOMEs from an unknown position (creeping, its way proven).",
+        (Part.CONTROLLER_POWER,)),
     Fault.LOADCELL_SCALE: FaultWords(
         "load-cell scale disagrees with the calibration",
         "the contact's stiffness the press's probe measured (the reading's rise over the actuator's step count) "
@@ -317,13 +506,16 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "the actuator lost steps, the reading did not follow the press, or the reading's scale is wrong",
         "the probe measured the contact's stiffness (the reading's rise over the steps the actuator was sent) more than "
         "15 % off the one stored when the scale was verified, and backed off before pressing. In the order a lab meets "
-        "them: a plate, sensor or mount changed since the calibration (a contact of another stiffness); the actuator "
-        "losing steps (check the coupling's set screws and that the lead screw turns freely: a slipping coupling or a "
-        "stalling motor moves less than it counts); the reading not following the press (watch FORCE_G while pressing "
-        "the cell by hand: a value that never changes is a frozen HX711 or its DOUT/SCK wires); the cell's scale "
-        "itself (drift, a loose excitation lead, a wrong calibration mass), which makes the reading and the force "
-        "limit off by as much. Fix what you found, then recalibrate with the reference mass (the GUI's calibration "
-        "tab, which stores the contact's stiffness again). Then CLEAR_FAULT."),
+        "them: a plate, sensor or mount changed since the calibration (a contact of another stiffness); the actuator's "
+        "coupling slipping (check its set screws: a slipping coupling moves less than it counts); the reading not "
+        "following the press (watch FORCE_G while pressing the cell by hand: a value that jumps or never changes is "
+        "the HX711's DOUT or SCK wire); the reading's scale (a loose excitation lead: check E+, E-, A+, A-; a wrong "
+        "calibration mass), which makes the reading and the force limit off by as much; the lead screw binding or the "
+        "motor losing steps (check that it turns freely); the cell itself (overloaded, creeping, of another range). "
+        "Fix what you found, then recalibrate with the reference mass (the GUI's calibration tab, which stores the "
+        "contact's stiffness again). Then CLEAR_FAULT.",
+        (Part.PLATE, Part.COUPLING, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.CALIBRATION, Part.LEAD_SCREW,
+         Part.LOADCELL)),
     Fault.LOADCELL_ZERO: FaultWords(
         "load-cell reading off its zero with nothing pressing",
         "a press from home at rest found the settled reading off the tare by more than PRESS_DIR_G (8 g), or the "
@@ -332,23 +524,25 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "the load cell read a force with the actuator at home and nothing moving (or the press's probe found no load "
         "rising where the reading showed the contact): the reading is not the contact's, and a press on it would "
         "hold the wrong force or none. It latched before pressing (the actuator stays where it is, or backs off from "
-        "the probe). In the order "
-        "a lab meets them: something resting on the sensor or the actuator (a hand, a tool, debris between drum and "
-        "sensor): remove it; the cell's zero moved (the cell overloaded or knocked, its mount's screws, a cable pulled "
-        "or a joint in its leads: check them and the HX711's wires). Then CLEAR_FAULT: the start HOMEs (its way "
-        "proven) and tares the cell again at home; if this latches again with nothing on the sensor, the cell or its "
-        "wiring is failing: replace it and recalibrate."),
+        "the probe). First look for something resting on the sensor or the actuator (a hand, a tool, debris between "
+        "drum and sensor): remove it. Else, in the order a lab meets them: the cell's zero moved (the cell overloaded "
+        "or knocked, its mount's screws): check its mount; its wiring (the HX711's DOUT and SCK wires, the cell's "
+        "cable and its E+, E-, A+, A- joints). Then CLEAR_FAULT: the start HOMEs (its way proven) and tares the cell "
+        "again at home; if this latches again with nothing on the sensor, the cell itself is failing: replace it and "
+        "recalibrate.",
+        (Part.LOAD_ON_SENSOR, Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.LOADCELL)),
     Fault.CONTACT_MISSING: FaultWords(
         "no force where the contact was",
         "the press's approach went PROBE_LOCATED_MARGIN_UM (plus the probe's contact load's travel) past where the "
         "last probe located the contact and the reading never showed it: a press commanded with no force rise",
         "the press went past where its last probe found the contact and the load cell read no force: either the "
         "reading is dead or the actuator did not get there. It backed off at once. In the order a lab meets them: the "
-        "actuator's coupling slipping or the motor losing steps (check the coupling's set screws and that the lead "
-        "screw turns freely and moves as far as it is told); the load cell or its wiring reading no load (a broken "
-        "cell or excitation lead: watch FORCE_G while pressing the cell with a finger, it must rise; check E+, E-, A+, "
-        "A- at the HX711); the plate or sample removed or changed (then HOME: the next press locates the contact "
-        "again). Then CLEAR_FAULT."),
+        "plate or sample removed or changed (then HOME: the next press locates the contact again); the actuator's "
+        "coupling slipping (check its set screws); the load cell's wiring reading no load (an open excitation or "
+        "bridge wire: watch FORCE_G while pressing the cell with a finger, it must rise; check E+, E-, A+, A- at the "
+        "HX711); the lead screw binding or the motor losing steps (check that it turns freely and moves as far as it "
+        "is told); the cell itself broken. Then CLEAR_FAULT.",
+        (Part.PLATE, Part.COUPLING, Part.LOADCELL_WIRING, Part.LEAD_SCREW, Part.LOADCELL)),
 }
 
 

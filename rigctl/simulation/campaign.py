@@ -31,14 +31,15 @@ import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
+from rigctl.core.drum import Part
 from rigctl.core.faults import FAULTS, INSTANT_FAULTS, FaultSpec
 from rigctl.devices import wire
 
-__all__ = ["CAMPAIGN_FAULTS", "CAMPAIGN_FAULTS_V1", "Case",
+__all__ = ["CAMPAIGN_FAULTS", "CAMPAIGN_FAULTS_V1", "Case", "BrokenPart", "FAULT_PARTS",
            "COLUMNS", "read_truth_log", "MOMENTS", "FORCE_BOUND_G", "CONTACT_G", "LATCH_STEP_MM", "LATCH_GRACE_S",
            "LATCH_PROOF_MM", "draw_case",
            "check_invariants", "ModelTruth", "Violation"]
@@ -74,6 +75,50 @@ _WORD_DRAWS = frozenset({"home-switch"})
 #: the one list of faults the campaign draws from, on every rig (issue 80: the same seed is the same case on the model
 #: rig and under simavr; a rig that cannot model one of them is an error, never a redraw)
 CAMPAIGN_FAULTS: tuple[str, ...] = tuple(sorted(FAULTS))
+
+
+class BrokenPart(NamedTuple):
+    """What a campaign fault (an FMEA row) really breaks (issue 75 item 4): ``part`` (the :class:`Part` an advice must
+    send the operator to; None: no part of the rig), ``unjudged`` (``""``: the advice walker judges the latched
+    fault's advice against ``part``; else why it does not: the operator's act, the environment's, latches nothing)."""
+
+    part: Part | None
+    unjudged: str = ""
+
+
+#: each campaign fault's broken part, beside the list (one table; tests/simulation/test_sim_advice_walk.py judges it:
+#: the advice of the fault it latches names the part, and no less likely part before it, rigctl.core.drum.PARTS)
+FAULT_PARTS: dict[str, BrokenPart] = {
+    "calibration-scale": BrokenPart(Part.CALIBRATION),
+    "cell-gain": BrokenPart(Part.LOADCELL),
+    "cell-offset": BrokenPart(Part.LOADCELL_ZERO),
+    "contact-stiffness": BrokenPart(Part.PLATE),
+    "coupling-slip": BrokenPart(Part.COUPLING),
+    "driver-enable-stuck": BrokenPart(Part.DRIVER, "latches nothing: the firmware never steps with the drivers off "
+                                                   "(STATUS_FLAGS reads the EN line back; the e-stop's contact in the "
+                                                   "motor supply bounds it)"),
+    "eeprom-corrupt": BrokenPart(Part.CONTROLLER_POWER),
+    "estop": BrokenPart(None, "the operator's act (or its wire broken): ESTOP's advice names the e-stop"),
+    "home-switch": BrokenPart(Part.HOME_SWITCH),
+    "host-silence": BrokenPart(Part.HOST_LINK, "the environment's: the host or its link is silent, so no face reads "
+                                               "the latch until it is back (WATCHDOG's advice names them)"),
+    "hx711-10sps": BrokenPart(Part.HX711_RATE_PIN),
+    "hx711-dout-noise": BrokenPart(Part.HX711_WIRES),
+    "hx711-frozen": BrokenPart(Part.HX711_CHIP),
+    "hx711-sck-broken": BrokenPart(Part.HX711_WIRES),
+    "reset": BrokenPart(Part.CONTROLLER_POWER),
+    "reversed-actuator": BrokenPart(Part.ACTUATOR_COILS),
+    "reversed-cell": BrokenPart(Part.LOADCELL_WIRING),
+    "reversed-drum": BrokenPart(Part.DRUM_COILS, "latches nothing: the speed marks pass either way (rigctl doctor's "
+                                                 "drum-direction check names the drum's coil pair)"),
+    "slip": BrokenPart(Part.DRUM_DRIVE),
+    "stall": BrokenPart(Part.DRUM_BLOCKED),
+    "steps-lost": BrokenPart(Part.LEAD_SCREW),
+    "taxel-link-drop": BrokenPart(None, "latches nothing: the taxel board's link, not the force path (the host's "
+                                        "stream checks retry, then end the run resumably)"),
+    "taxel-ohm": BrokenPart(None, "latches nothing: the taxels' source impedance, not the force path"),
+}
+
 #: the campaign's draw before the bill of materials' faults were added (issue 75): its list of faults and its plate
 #: swaps' stiffness (0.25-6 kg/mm); the seeds of the cases fixed then draw their old cases from it (``draw="v1"``)
 #: the rig's own contact drawn up to the stiffest a rig config accepts (v1: up to 6 kg/mm, from before that bound)

@@ -69,6 +69,8 @@ class ModelFaults:
     ----------
     host_silent : True while ``host-silence`` is active (the in-process transport then answers nothing).
     active : the names of the faults active now.
+    started_s : each fault's name -> the model's time (s) it first started (the advice walker judges the first latch
+        after it: issue 75 item 4).
     """
 
     def __init__(self, controller: MegaController, model: RigModel, *,
@@ -78,6 +80,7 @@ class ModelFaults:
         self.drum_link, self.taxel_link = drum_link, taxel_link
         self.host_silent = False
         self.active: set[str] = set()
+        self.started_s: dict[str, float] = {}
         self._stiffness_g_per_mm = model.config.mechanics.contact_stiffness_g_per_mm  # the rig's own plate
 
     def fault_refusal(self, spec: FaultSpec) -> str | None:
@@ -97,6 +100,7 @@ class ModelFaults:
         log.warning("injected fault %s: %s", spec, "starts" if active else "ends")
         if active:
             self.active.add(name)
+            self.started_s.setdefault(name, float(self.model.time_s))
         else:
             self.active.discard(name)
         c, m = self.controller, self.model
