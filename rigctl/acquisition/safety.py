@@ -43,9 +43,9 @@ from rigctl.core.drum import (
     DrumFault,
     DrumReset,
     Fault,
-    Part,
     describe_faults,
 )
+from rigctl.core.parts import Part
 
 __all__ = ["Latch", "Acknowledgement", "ConfigResolution", "LatchedFault", "DrumStall", "SafetyLatch", "SafetyLog", "latch_for",
            "latch_from_faults", "CAUSES", "CAUSE_PARTS", "operator_name", "safety_log_path"]
@@ -113,7 +113,7 @@ CAUSES: dict[str, tuple[str, str]] = {
 }
 
 #: the parts each latch cause's remedy (:data:`CAUSES`) names, in the order it names them: most likely first
-#: (rigctl.core.drum.less_likely_first; its exceptions in rigctl.core.drum.ADVICE_ORDER_EXCEPTIONS); issue 75 item 4
+#: (rigctl.core.parts.less_likely_first; its exceptions in rigctl.core.parts.ADVICE_ORDER_EXCEPTIONS); issue 75 item 4
 CAUSE_PARTS: dict[str, tuple[Part, ...]] = {
     "estop": (Part.E_STOP,),
     "force-limit": (Part.PLATE, Part.COUPLING, Part.HX711_WIRES, Part.SETPOINT),

@@ -35,8 +35,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from rigctl.core.drum import Part
 from rigctl.core.faults import FAULTS, INSTANT_FAULTS, FaultSpec
+from rigctl.core.parts import Part
 from rigctl.devices import wire
 
 __all__ = ["CAMPAIGN_FAULTS", "CAMPAIGN_FAULTS_V1", "Case", "BrokenPart", "FAULT_PARTS",
@@ -87,7 +87,7 @@ class BrokenPart(NamedTuple):
 
 
 #: each campaign fault's broken part, beside the list (one table; tests/simulation/test_sim_advice_walk.py judges it:
-#: the advice of the fault it latches names the part, and no less likely part before it, rigctl.core.drum.PARTS)
+#: the advice of the fault it latches names the part, and no less likely part before it, rigctl.core.parts.PARTS)
 FAULT_PARTS: dict[str, BrokenPart] = {
     "calibration-scale": BrokenPart(Part.CALIBRATION),
     "cell-gain": BrokenPart(Part.LOADCELL),

@@ -1,6 +1,6 @@
 """Every fault's advice names the most likely cause first (issue 75 item 4), judged on its structure: the parts each
 advice sends the operator to (``FaultWords.causes``, ``rigctl.acquisition.safety.CAUSE_PARTS``) are the parts its
-words name, in the order they name them, and that order is by the FMEA's occurrence rating (``rigctl.core.drum.PARTS``,
+words name, in the order they name them, and that order is by the FMEA's occurrence rating (``rigctl.core.parts.PARTS``,
 docs/safety.md "Occurrence", the same table), ties allowed, except where ``ADVICE_ORDER_EXCEPTIONS`` says why. The
 advice walker (tests/simulation/test_sim_advice_walk.py) judges each campaign fault's latch against the part it
 breaks."""
@@ -12,16 +12,8 @@ from pathlib import Path
 import pytest
 
 from rigctl.acquisition.safety import CAUSE_PARTS, CAUSES
-from rigctl.core.drum import (
-    ACTUATOR_DIRECTION_CAUSES,
-    ADVICE_ORDER_EXCEPTIONS,
-    FAULT_WORDS,
-    PARTS,
-    Fault,
-    Part,
-    less_likely_first,
-    named_at,
-)
+from rigctl.core.drum import ACTUATOR_DIRECTION_CAUSES, FAULT_WORDS, Fault
+from rigctl.core.parts import ADVICE_ORDER_EXCEPTIONS, PARTS, Part, less_likely_first, named_at
 from rigctl.simulation.campaign import CAMPAIGN_FAULTS, FAULT_PARTS
 
 SAFETY_MD = Path(__file__).resolve().parents[2] / "docs" / "safety.md"
@@ -105,7 +97,7 @@ def occurrence_table() -> str:
 def test_docs_safety_md_holds_the_ratings_verbatim():
     doc = SAFETY_MD.read_text(encoding="utf-8")
     block = doc.split("<!-- fmea: occurrence -->\n", 1)[1].split("\n\n", 1)[0]
-    assert block == occurrence_table(), "docs/safety.md's occurrence table is not rigctl.core.drum.PARTS:\n" + (
+    assert block == occurrence_table(), "docs/safety.md's occurrence table is not rigctl.core.parts.PARTS:\n" + (
         occurrence_table())
     ordered = [r.occurrence for r in PARTS.values()]
     assert ordered == sorted(ordered, reverse=True), "PARTS most likely first"

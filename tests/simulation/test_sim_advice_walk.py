@@ -5,7 +5,7 @@ fault's advice literally, three rounds of "do what it says, acknowledge, start"
 (the true force <= 1.1 x FORCE_LIMIT, no step towards the sensor while latched) and no part the advice had rewired
 the wrong way that was right before (a coil pair of a good motor, A+/A- of a good cell); and the advice's order: the
 latches after the fault started name the part it breaks (rigctl.simulation.campaign.FAULT_PARTS), with no less
-likely part before it (the occurrence ratings, rigctl.core.drum.PARTS)."""
+likely part before it (the occurrence ratings, rigctl.core.parts.PARTS)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 
 from rigctl.acquisition.safety import CAUSE_PARTS
-from rigctl.core.drum import FAULT_WORDS, PARTS, Fault, Part, less_likely_first
+from rigctl.core.drum import FAULT_WORDS, Fault
+from rigctl.core.parts import PARTS, Part, less_likely_first
 from rigctl.simulation.campaign import CAMPAIGN_FAULTS, FAULT_PARTS, draw_case
 
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_fault_campaign.py"
@@ -77,7 +78,7 @@ def test_following_the_advice_is_never_worse_than_the_fault(bench, fault, tmp_pa
     """Each row's fault walked (never worse than the fault), and its advice judged (issue 75 item 4): the latches
     after the fault started (a fault's first latch may be its side effect's: ``calibration-scale``'s power cycle
     latches RESET before the next probe finds the scale) give an advice that names the part the fault breaks
-    (rigctl.simulation.campaign.FAULT_PARTS), and no less likely part before it (rigctl.core.drum.PARTS, its
+    (rigctl.simulation.campaign.FAULT_PARTS), and no less likely part before it (rigctl.core.parts.PARTS, its
     documented exceptions allowed); a row the table says is not judged (the operator's, the environment's, latches
     nothing) says why there."""
     case = draw_case(walk_seed(fault), [fault])
