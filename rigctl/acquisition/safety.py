@@ -58,8 +58,10 @@ _CRUSH = f" ({CRUSH_NOTE})"
 #: every latch cause: (label, what the operator does before acknowledging)
 CAUSES: dict[str, tuple[str, str]] = {
     "estop": ("e-stop", "release the e-stop"),
-    "force-limit": ("force limit exceeded", "check the plate and the sensor, the actuator's coupling (its set screws) "
-                    "and the HX711's DOUT and SCK wires, then lower the force setpoint" + _CRUSH),
+    "force-limit": ("force limit exceeded", "check the plate and the sensor, FORCE_G with nothing on the sensor (far "
+                    "from 0 g: its zero moved, recalibrate), the actuator's coupling (its set screws) and the HX711's "
+                    "DOUT and SCK wires, then lower the force setpoint; latched again: check that the lead screw "
+                    "turns freely" + _CRUSH),
     "reversed-cell": ("load cell reversed", "with nothing touching the sensor read FORCE_G: far from 0 g, its zero "
                       "moved: recalibrate the load cell and change no wire; else " + HAND_PRESS_STEP + ": if they "
                       "all fall, swap A+/A- at the HX711 (or turn the cell over); if they all rise, change no wire "
@@ -78,22 +80,25 @@ CAUSES: dict[str, tuple[str, str]] = {
                                                   "actuator's coupling (its set screws), the load cell's wires (A+, "
                                                   "A-, E+, E-) and that the actuator turns the right way (a coil "
                                                   "pair swapped drives it into its rear stop while its steps count "
-                                                  "on)"),
+                                                  "on), then the cell itself"),
     "home-failed": ("HOME failed", "check the home switch and its wire, then that the lead screw turns freely and the "
                                    "driver is enabled"),
-    "hx711-rate": ("wrong HX711 rate", "set the HX711's RATE pin (or the rig config's force_loop) to match"),
+    "hx711-rate": ("wrong HX711 rate", "set the HX711's RATE pin (or the rig config's force_loop) to match; seen "
+                   "again with no power cycle of yours, the controller reset by itself: check its power and reset "
+                   "line"),
     "reset": ("controller reset", "check the controller's power and reset line, and that nothing presses the sensor"),
     "stall": ("drum stalled or slipping", "check the drum's drive (its coupling, the stepper and its driver's "
               "current) and free the drum (nothing may block it)"),
-    "contact-stiffness": ("contact too stiff", "use a softer plate, sensor mount or pad, or store slower force-loop "
-                          "gains (the rig config's force_loop)" + _CRUSH),
+    "contact-stiffness": ("contact too stiff", "use a softer plate, sensor mount or pad; on the calibrated plate, check "
+                          "the excitation leads (E+, E-) and the calibration mass (a scale too high reads as a stiffer "
+                          "contact); else store slower force-loop gains (the rig config's force_loop)" + _CRUSH),
     "position-limit": ("pressed past the contact's limit", "the reading disagreed with the position: check the plate "
                        "or mount (changed since the probe), the HX711's DOUT and SCK wires, the calibration mass, "
                        "that no coil pair of the actuator is swapped, then a frozen HX711 (rigctl doctor)" + _CRUSH),
     "hx711-stuck": ("load-cell reading frozen", "power-cycle the rig, then check the HX711's DOUT and SCK wires"
                     + _CRUSH),
     "hx711-line": ("load-cell line fault", "check the HX711's SCK and DOUT wires, then the load cell's (E+, E-, A+, "
-                   "A-)" + _CRUSH),
+                   "A-), then the cell itself" + _CRUSH),
     "hx711-cadence": ("load-cell readings too fast", "check the HX711's SCK and DOUT wires" + _CRUSH),
     "contact-lost": ("contact lost while the force held", "the reading did not follow the contact: remove anything "
                      "resting on the sensor or the actuator, check the HX711's DOUT and SCK wires, then a frozen "
@@ -104,9 +109,10 @@ CAUSES: dict[str, tuple[str, str]] = {
                        "the lead screw binding, the cell itself: check them in that order, then recalibrate with the "
                        "reference mass (the GUI's calibration tab)" + _CRUSH),
     "loadcell-zero": ("the load cell read a force with nothing pressing",
-                      "remove anything resting on the sensor or the actuator; else its zero moved: check the cell's "
-                      "mount, then the HX711's DOUT and SCK wires and the cell's cable (E+, E-, A+, A-); the start "
-                      "HOMEs and tares again" + _CRUSH),
+                      "remove anything resting on the sensor or the actuator; else the plate or mount changed "
+                      "(recalibrate: it stores the new contact) or its zero moved: check the cell's mount, then the "
+                      "HX711's DOUT and SCK wires and the cell's cable (E+, E-, A+, A-); latched again with nothing "
+                      "on the sensor, the cell itself is failing; the start HOMEs and tares again" + _CRUSH),
     "contact-missing": ("no force where the contact was", "check the plate (removed or changed: HOME), the actuator's "
                         "coupling (its set screws), the load cell's wires (E+, E-, A+, A-: a cell that reads no "
                         "load), that the lead screw turns freely, then the cell itself" + _CRUSH),
@@ -116,26 +122,27 @@ CAUSES: dict[str, tuple[str, str]] = {
 #: (rigctl.core.parts.less_likely_first; its exceptions in rigctl.core.parts.ADVICE_ORDER_EXCEPTIONS); issue 75 item 4
 CAUSE_PARTS: dict[str, tuple[Part, ...]] = {
     "estop": (Part.E_STOP,),
-    "force-limit": (Part.PLATE, Part.COUPLING, Part.HX711_WIRES, Part.SETPOINT),
+    "force-limit": (Part.PLATE, Part.LOADCELL_ZERO, Part.COUPLING, Part.HX711_WIRES, Part.SETPOINT, Part.LEAD_SCREW),
     "reversed-cell": (Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.CALIBRATION),
     "watchdog": (Part.HOST_LINK,),
     "loadcell-timeout": (Part.HX711_WIRES, Part.HX711_CHIP),
     "actuator-direction": (Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.HOME_SWITCH,
                            Part.ACTUATOR_COILS),
-    "actuator-travel": (Part.PLATE, Part.COUPLING, Part.LOADCELL_WIRING, Part.ACTUATOR_COILS),
+    "actuator-travel": (Part.PLATE, Part.COUPLING, Part.LOADCELL_WIRING, Part.ACTUATOR_COILS, Part.LOADCELL),
     "home-failed": (Part.HOME_SWITCH, Part.LEAD_SCREW, Part.DRIVER),
-    "hx711-rate": (Part.HX711_RATE_PIN, Part.RIG_CONFIG),
+    "hx711-rate": (Part.HX711_RATE_PIN, Part.RIG_CONFIG, Part.CONTROLLER_POWER),
     "reset": (Part.CONTROLLER_POWER,),
     "stall": (Part.DRUM_DRIVE, Part.DRUM_BLOCKED),
-    "contact-stiffness": (Part.PLATE, Part.RIG_CONFIG),
+    "contact-stiffness": (Part.PLATE, Part.LOADCELL_WIRING, Part.CALIBRATION, Part.RIG_CONFIG),
     "position-limit": (Part.PLATE, Part.HX711_WIRES, Part.CALIBRATION, Part.ACTUATOR_COILS, Part.HX711_CHIP),
     "hx711-stuck": (Part.HX711_CHIP, Part.HX711_WIRES),
-    "hx711-line": (Part.HX711_WIRES, Part.LOADCELL_WIRING),
+    "hx711-line": (Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.LOADCELL),
     "hx711-cadence": (Part.HX711_WIRES,),
     "contact-lost": (Part.LOAD_ON_SENSOR, Part.HX711_WIRES, Part.HX711_CHIP),
     "loadcell-scale": (Part.PLATE, Part.COUPLING, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.CALIBRATION,
                        Part.LEAD_SCREW, Part.LOADCELL),
-    "loadcell-zero": (Part.LOAD_ON_SENSOR, Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING),
+    "loadcell-zero": (Part.LOAD_ON_SENSOR, Part.PLATE, Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING,
+                      Part.LOADCELL),
     "contact-missing": (Part.PLATE, Part.COUPLING, Part.LOADCELL_WIRING, Part.LEAD_SCREW, Part.LOADCELL),
 }
 

@@ -159,7 +159,8 @@ HAND_PRESS_STEP = (
     f"press the load cell by hand {HAND_PRESSES} times with the same weight (a 200 g mass) and read FORCE_G after "
     f"each: only presses that all read about that weight (within half of it) and all the same way tell anything; "
     f"presses that disagree or are far from it are a noisy reading, not a wiring: change no wire, check the HX711's "
-    f"DOUT and SCK wires")
+    f"DOUT and SCK wires; presses that agree with each other but read far from the weight are the reading's scale: "
+    f"change no wire, check the excitation leads' joints (E+, E-) and recalibrate with the mass")
 
 
 def hand_press_verdict(changes_g: "list[float] | tuple[float, ...]", weight_g: float) -> str:
@@ -212,10 +213,12 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
     Fault.FORCE_LIMIT: FaultWords(
         "force limit exceeded", "measured force exceeded FORCE_LIMIT_G",
         "the measured force went above the controller's FORCE_LIMIT; the actuator backed off at once. In the order a "
-        "lab meets them: check the plate and the sensor (a stiffer plate or mount than before), the actuator's "
-        "coupling (a set screw that slips lets the screw jump forward when the motor holds) and the HX711's DOUT and "
-        "SCK wires (a reading that jumps by itself), then lower the force setpoint.",
-        (Part.PLATE, Part.COUPLING, Part.HX711_WIRES, Part.SETPOINT)),
+        "lab meets them: check the plate and the sensor (a stiffer plate or mount than before), FORCE_G with nothing "
+        "on the sensor (far from 0 g: the load cell's zero moved, recalibrate), the actuator's coupling (a set screw "
+        "that slips lets the screw jump forward when the motor holds) and the HX711's DOUT and SCK wires (a reading "
+        "that jumps by itself), then lower the force setpoint; if it latches again, check that the lead screw turns "
+        "freely (a motor losing steps makes the probe take the contact for softer than it is).",
+        (Part.PLATE, Part.LOADCELL_ZERO, Part.COUPLING, Part.HX711_WIRES, Part.SETPOINT, Part.LEAD_SCREW)),
     Fault.WATCHDOG: FaultWords(
         "host watchdog expired", "host went silent for longer than WATCHDOG_MS",
         "the controller heard nothing from the host for WATCHDOG_MS while the drum turned or the force loop held, "
@@ -266,8 +269,10 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "the load cell amplifier's measured rate is not the one the force loop is set for",
         "the HX711 converts at another rate than HX711_RATE_SPS (most boards ship at 10 SPS, RATE pin low; the "
         "default gains are for 80 SPS). Set the board's RATE pin high (80 SPS), or accept 10 SPS with its slower "
-        "gains (DrumClient.set_hx711_rate(10), or a force_loop block in the rig config), then CLEAR_FAULT.",
-        (Part.HX711_RATE_PIN, Part.RIG_CONFIG)),
+        "gains (DrumClient.set_hx711_rate(10), or a force_loop block in the rig config), then CLEAR_FAULT. A 10 SPS "
+        "board latches this at every power-up: seen again with no power cycle of yours, the controller reset by "
+        "itself (check its power and reset line: a brown-out also loses what it was writing to its EEPROM).",
+        (Part.HX711_RATE_PIN, Part.RIG_CONFIG, Part.CONTROLLER_POWER)),
     Fault.ACTUATOR_DIRECTION: FaultWords(
         "actuator turns the wrong way or load cell reversed",
         "the actuator moved the wrong way or the load cell reads reversed: HOME's switch did not open when leaving "
@@ -288,9 +293,11 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "the contact stiffness the first press measured is more than the force loop holds with its gains",
         "the first press since the controller's reset measured the contact's stiffness (CONTACT_STIFFNESS_G_PER_MM) "
         "above what the force loop holds with its gains and the HX711's delay (STIFFNESS_MAX_G_PER_MM): it backed "
-        "off, and PRESS and RUN are refused. Use a softer plate, sensor mount or pad, or store slower gains (the rig "
-        "config's force_loop block: the limit grows as Kp falls), then CLEAR_FAULT.",
-        (Part.PLATE, Part.RIG_CONFIG)),
+        "off, and PRESS and RUN are refused. In the order a lab meets them: a plate, sensor mount or pad stiffer than "
+        "the loop holds (use a softer one); on the calibrated plate, the reading's scale too high (a loose excitation "
+        "lead: check E+, E-; a wrong calibration mass: recalibrate), which the probe reads as a stiffer contact; else "
+        "store slower gains (the rig config's force_loop block: the limit grows as Kp falls). Then CLEAR_FAULT.",
+        (Part.PLATE, Part.LOADCELL_WIRING, Part.CALIBRATION, Part.RIG_CONFIG)),
     Fault.POSITION_LIMIT: FaultWords(
         "pressed past the contact's limit",
         "the actuator went further past the probed contact than FORCE_LIMIT_G allows at the measured stiffness, "
@@ -373,12 +380,14 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "rising where the reading showed the contact): the reading is not the contact's, and a press on it would "
         "hold the wrong force or none. It latched before pressing (the actuator stays where it is, or backs off from "
         "the probe). First look for something resting on the sensor or the actuator (a hand, a tool, debris between "
-        "drum and sensor): remove it. Else, in the order a lab meets them: the cell's zero moved (the cell overloaded "
-        "or knocked, its mount's screws): check its mount; its wiring (the HX711's DOUT and SCK wires, the cell's "
+        "drum and sensor): remove it. Else, in the order a lab meets them: the plate or mount changed since the "
+        "calibration (a softer contact raises less load per step than the stored stiffness: recalibrate, which "
+        "stores the new contact); the cell's zero moved (the cell overloaded or knocked, its mount's screws): check "
+        "its mount; its wiring (the HX711's DOUT and SCK wires, the cell's "
         "cable and its E+, E-, A+, A- joints). Then CLEAR_FAULT: the start HOMEs (its way proven) and tares the cell "
         "again at home; if this latches again with nothing on the sensor, the cell itself is failing: replace it and "
         "recalibrate.",
-        (Part.LOAD_ON_SENSOR, Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.LOADCELL)),
+        (Part.LOAD_ON_SENSOR, Part.PLATE, Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.LOADCELL)),
     Fault.CONTACT_MISSING: FaultWords(
         "no force where the contact was",
         "the press's approach went PROBE_LOCATED_MARGIN_UM (plus the probe's contact load's travel) past where the "

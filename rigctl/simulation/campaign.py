@@ -90,7 +90,7 @@ class BrokenPart(NamedTuple):
 #: the advice of the fault it latches names the part, and no less likely part before it, rigctl.core.parts.PARTS)
 FAULT_PARTS: dict[str, BrokenPart] = {
     "calibration-scale": BrokenPart(Part.CALIBRATION),
-    "cell-gain": BrokenPart(Part.LOADCELL),
+    "cell-gain": BrokenPart(Part.LOADCELL_WIRING),  # the likeliest of the row's causes: a joint in an excitation lead
     "cell-offset": BrokenPart(Part.LOADCELL_ZERO),
     "contact-stiffness": BrokenPart(Part.PLATE),
     "coupling-slip": BrokenPart(Part.COUPLING),

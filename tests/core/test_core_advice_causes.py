@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.acquisition.safety import CAUSE_PARTS, CAUSES
+from rigctl.acquisition.safety import _FAULT_CAUSES, CAUSE_PARTS, CAUSES
 from rigctl.core.drum import ACTUATOR_DIRECTION_CAUSES, FAULT_WORDS, Fault
 from rigctl.core.parts import ADVICE_ORDER_EXCEPTIONS, PARTS, Part, less_likely_first, named_at
 from rigctl.simulation.campaign import CAMPAIGN_FAULTS, FAULT_PARTS
@@ -31,6 +31,13 @@ def test_every_advice_has_its_parts():
     for key, (_, causes) in ADVICES.items():
         assert causes, f"{key}'s advice names no part"
         assert len(set(causes)) == len(causes), key
+
+
+def test_both_faces_send_the_operator_to_the_same_parts():
+    """A fault bit's words (the CLI, the doctor: fault_advice) and its latch cause's remedy (the GUI's fault dialog)
+    name the same parts in the same order."""
+    for bit, cause in _FAULT_CAUSES:
+        assert FAULT_WORDS[bit].causes == CAUSE_PARTS[cause], (bit.name, cause)
 
 
 @pytest.mark.parametrize("key", sorted(ADVICES))

@@ -50,13 +50,13 @@ def bench():
     return module
 
 
-def _advices(faults: int, causes: tuple[str, ...]) -> dict[str, dict[str, tuple[Part, ...]]]:
-    """The advices a latch gives the operator, by face: ``"controller"`` (each latched fault bit's words,
-    rigctl.core.drum.fault_advice: the CLI, the doctor) and ``"host"`` (each latch cause's remedy, the GUI's fault
-    dialog), by key: the parts each names, in its order."""
-    return {"controller": {str(bit.name): FAULT_WORDS[bit].causes for bit in Fault
-                           if faults & int(bit) and bit in FAULT_WORDS},
-            "host": {c: CAUSE_PARTS[c] for c in causes if c in CAUSE_PARTS}}
+def _advices(faults: int, causes: tuple[str, ...]) -> dict[str, tuple[Part, ...]]:
+    """The advices a latch gives the operator (each latched fault bit's words, rigctl.core.drum.fault_advice, and each
+    latch cause's remedy, the GUI's fault dialog: the two name the same parts, tests/core/test_core_advice_causes.py),
+    by key: the parts each names, in its order."""
+    out = {str(bit.name): FAULT_WORDS[bit].causes for bit in Fault if faults & int(bit) and bit in FAULT_WORDS}
+    out.update({c: CAUSE_PARTS[c] for c in causes if c in CAUSE_PARTS})
+    return out
 
 
 def _fault_latches(out: dict) -> list[tuple[float, int, tuple[str, ...]]]:
@@ -93,16 +93,9 @@ def test_following_the_advice_is_never_worse_than_the_fault(bench, fault, tmp_pa
     assert broken.part is not None
     latches = _fault_latches(out)
     assert latches, f"the fault latched nothing after it started at {out['fault_started_s']}: {said}"
-    faces: dict[str, dict[str, tuple[Part, ...]]] = {"controller": {}, "host": {}}
-    for _, faults, held in latches:
-        for face, advices in _advices(faults, held).items():
-            faces[face].update(advices)
-    naming: dict[str, tuple[Part, ...]] = {}
-    for face, advices in faces.items():  # each face the operator reads sends them to the part
-        named = {key: causes for key, causes in advices.items() if broken.part in causes}
-        assert named or not advices, (
-            f"no {face} advice of {sorted(advices)} names {broken.part.name}, the part {fault} breaks: {said}")
-        naming.update(named)
+    advices = {key: causes for _, faults, held in latches for key, causes in _advices(faults, held).items()}
+    naming = {key: causes for key, causes in advices.items() if broken.part in causes}
+    assert naming, f"no advice of {sorted(advices)} names {broken.part.name}, the part {fault} breaks: {said}"
     for key, causes in naming.items():
         before = causes[:causes.index(broken.part) + 1]
         assert less_likely_first(key, before) == [], (
