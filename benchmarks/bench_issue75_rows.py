@@ -41,6 +41,7 @@ from pathlib import Path
 from rigctl.core.faults import FaultSpecError, parse_fault
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumError
+from rigctl.rigs import drum_answer_timeout_s
 from rigctl.simulation.hil_bench import HilBench
 
 State, Fault = wire.DrumState, wire.Fault
@@ -192,7 +193,7 @@ def run_row(name: str, stall_g: float) -> dict[str, object]:
     cpu0 = time.process_time() + resource.getrusage(resource.RUSAGE_CHILDREN).ru_utime
     seen: list[str] = []
     with tempfile.TemporaryDirectory() as tmp:
-        b = HilBench(Path(tmp), sps=sps, k=k, stall_g=stall_g)
+        b = HilBench(Path(tmp), sps=sps, k=k, stall_g=stall_g, answer_timeout_s=drum_answer_timeout_s("hil"))
         try:
             t0 = b.rig.next_telemetry().t_s
             if offset_g:

@@ -58,8 +58,8 @@ BOOTLOADER_BAUD = 115200
 #: the contact stiffness range, EN read back; 1.5: the controller latches a reset away from home itself, RESET in
 #: FAULT_BITS_HI: docs/wire-protocol.md 2.5 and 2.7; 1.6: the reading's scale checked against the contact's stiffness
 #: stored with the calibration, LOADCELL_SCALE: 2.12; 1.7: the reading's zero judged off the contact at each press's
-#: start and the probe's steps, LOADCELL_ZERO: 2.13; 1.8: a press with no force rise within its travel past a located
-#: contact, CONTACT_MISSING, and the zero's bounded follow at a press's start: 2.13): an image below it is never run,
+#: start and the probe's steps, LOADCELL_ZERO: 2.13; 1.8: the zero's bounded follow at a press's start: 2.13): an
+#: image below it is never run,
 #: ``--allow-firmware-mismatch`` or not
 #: (:func:`below_safety_floor`). A change to controller.c's safety rules raises the Mega's minor version and this
 #: floor with it (docs/firmware.md)

@@ -113,9 +113,6 @@ CAUSES: dict[str, tuple[str, str]] = {
                       "(recalibrate: it stores the new contact) or its zero moved: check the cell's mount, then the "
                       "HX711's DOUT and SCK wires and the cell's cable (E+, E-, A+, A-); latched again with nothing "
                       "on the sensor, the cell itself is failing; the start HOMEs and tares again" + _CRUSH),
-    "contact-missing": ("no force where the contact was", "check the plate (removed or changed: HOME), the actuator's "
-                        "coupling (its set screws), the load cell's wires (E+, E-, A+, A-: a cell that reads no "
-                        "load), that the lead screw turns freely, then the cell itself" + _CRUSH),
 }
 
 #: the parts each latch cause's remedy (:data:`CAUSES`) names, in the order it names them: most likely first
@@ -143,7 +140,6 @@ CAUSE_PARTS: dict[str, tuple[Part, ...]] = {
                        Part.LEAD_SCREW, Part.LOADCELL),
     "loadcell-zero": (Part.LOAD_ON_SENSOR, Part.PLATE, Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING,
                       Part.LOADCELL),
-    "contact-missing": (Part.PLATE, Part.COUPLING, Part.LOADCELL_WIRING, Part.LEAD_SCREW, Part.LOADCELL),
 }
 
 #: the cause of each controller fault bit (the first that is set names the latch)
@@ -155,7 +151,7 @@ _FAULT_CAUSES: tuple[tuple[Fault, str], ...] = (
     (Fault.DRUM_SLIP, "stall"), (Fault.CONTACT_STIFFNESS, "contact-stiffness"), (Fault.HX711_LINE, "hx711-line"),
     (Fault.HX711_CADENCE, "hx711-cadence"), (Fault.HX711_STUCK, "hx711-stuck"), (Fault.POSITION_LIMIT, "position-limit"),
     (Fault.CONTACT_LOST, "contact-lost"), (Fault.RESET, "reset"), (Fault.LOADCELL_SCALE, "loadcell-scale"),
-    (Fault.LOADCELL_ZERO, "loadcell-zero"), (Fault.CONTACT_MISSING, "contact-missing"),
+    (Fault.LOADCELL_ZERO, "loadcell-zero"),
 )
 
 

@@ -90,7 +90,6 @@ class Fault(enum.IntFlag):
     RESET = 1 << 16  # FAULT_BITS_HI bit 0 (firmware 1.5)
     LOADCELL_SCALE = 1 << 17  # FAULT_BITS_HI bit 1 (firmware 1.6)
     LOADCELL_ZERO = 1 << 18  # FAULT_BITS_HI bit 2 (firmware 1.7)
-    CONTACT_MISSING = 1 << 19  # FAULT_BITS_HI bit 3 (firmware 1.8)
 
 
 #: the reading's scale check (docs/wire-protocol.md 2.12): the probe's stiffness over the one stored with the
@@ -202,7 +201,7 @@ _ACTUATOR_DIRECTION_PARTS = (Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL
 #: cause is fixed (:func:`fault_advice` says so). A fault bit added for a lying reading belongs here too
 CRUSH_FAULTS = (Fault.FORCE_LIMIT | Fault.LOADCELL_REVERSED | Fault.ACTUATOR_DIRECTION | Fault.CONTACT_STIFFNESS
                 | Fault.POSITION_LIMIT | Fault.HX711_STUCK | Fault.HX711_LINE | Fault.HX711_CADENCE | Fault.CONTACT_LOST
-                | Fault.LOADCELL_SCALE | Fault.LOADCELL_ZERO | Fault.CONTACT_MISSING)
+                | Fault.LOADCELL_SCALE | Fault.LOADCELL_ZERO)
 
 #: what :func:`fault_advice` adds to a crush-class fault
 CRUSH_NOTE = ("a crush-class fault: opening the rig never clears it; acknowledge it with a reason once the cause is "
@@ -388,18 +387,6 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "again at home; if this latches again with nothing on the sensor, the cell itself is failing: replace it and "
         "recalibrate.",
         (Part.LOAD_ON_SENSOR, Part.PLATE, Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.LOADCELL)),
-    Fault.CONTACT_MISSING: FaultWords(
-        "no force where the contact was",
-        "the press's approach went PROBE_LOCATED_MARGIN_UM (plus the probe's contact load's travel) past where the "
-        "last probe located the contact and the reading never showed it: a press commanded with no force rise",
-        "the press went past where its last probe found the contact and the load cell read no force: either the "
-        "reading is dead or the actuator did not get there. It backed off at once. In the order a lab meets them: the "
-        "plate or sample removed or changed (then HOME: the next press locates the contact again); the actuator's "
-        "coupling slipping (check its set screws); the load cell's wiring reading no load (an open excitation or "
-        "bridge wire: watch FORCE_G while pressing the cell with a finger, it must rise; check E+, E-, A+, A- at the "
-        "HX711); the lead screw binding or the motor losing steps (check that it turns freely and moves as far as it "
-        "is told); the cell itself broken. Then CLEAR_FAULT.",
-        (Part.PLATE, Part.COUPLING, Part.LOADCELL_WIRING, Part.LEAD_SCREW, Part.LOADCELL)),
 }
 
 

@@ -14,7 +14,6 @@ from pathlib import Path
 from rigctl.core.faults import parse_fault
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient, DrumStatus
-from rigctl.rigs import drum_answer_timeout_s
 from rigctl.simulation import hil
 from rigctl.simulation.model import MechanicsConfig, RigConfig
 
@@ -34,18 +33,19 @@ class HilBench:
     ``sps``: the HX711's rate (10 or 80); ``k``: the contact's stiffness, g/mm (1 mm from home); ``counts_per_g``:
     the load cell's scale; ``calibrated``: the factory calibration stored in EEPROM (else the defaults);
     ``stall_g``: the actuator driver's stall force, g (0: off, the firmware alone; docs/hardware sizes it: the rig as
-    built). The truth log goes to ``folder``. Raises :class:`rigctl.simulation.hil.HilError` when simavr or the
+    built); ``answer_timeout_s``: the drum client's answer timeout, s (``rigctl.rigs.drum_answer_timeout_s("hil")``).
+    The truth log goes to ``folder``. Raises :class:`rigctl.simulation.hil.HilError` when simavr or the
     firmware cannot be started."""
 
-    def __init__(self, folder: Path, *, sps: int, k: float, counts_per_g: float = 420.0, calibrated: bool = True,
-                 stall_g: float = 0.0) -> None:
+    def __init__(self, folder: Path, *, sps: int, k: float, answer_timeout_s: float, counts_per_g: float = 420.0,
+                 calibrated: bool = True, stall_g: float = 0.0) -> None:
         mech = MechanicsConfig(contact_stiffness_g_per_mm=k, hx711_rate_sps=float(sps), contact_gap_mm=1.0,
                                loadcell_counts_per_g=counts_per_g, actuator_stall_g=stall_g)
         self.truth_path = Path(folder) / f"truth-{sps}-{k:g}.csv"
         self.rig = hil.HilRig(RigConfig(mechanics=mech), live=False, with_uno=False, tel_ms=5.0,
                               truth_log=self.truth_path, factory_calibrated=calibrated).start()
         self.rig.truth_start()
-        self.drum = DrumClient(self.rig.drum_port, timeout_s=drum_answer_timeout_s("hil"), clock=self.rig.clock).open()
+        self.drum = DrumClient(self.rig.drum_port, timeout_s=answer_timeout_s, clock=self.rig.clock).open()
         self.sps = sps
         self.drum.write_holding(_HR.WATCHDOG_MS, 10000)
         self.boot()

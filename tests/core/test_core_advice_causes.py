@@ -73,7 +73,7 @@ def test_every_exception_is_used_and_says_why():
 def test_the_order_check_sees_a_less_likely_part_first():
     """The check can fail: a broken cell (O 2) named before a changed plate (O 8), and the exception that allows a
     quick harmless check first only for its own advice."""
-    assert less_likely_first("CONTACT_MISSING", (Part.LOADCELL, Part.PLATE)) == [(Part.LOADCELL, Part.PLATE)]
+    assert less_likely_first("LOADCELL_SCALE", (Part.LOADCELL, Part.PLATE)) == [(Part.LOADCELL, Part.PLATE)]
     assert less_likely_first("HX711_STUCK", (Part.HX711_CHIP, Part.HX711_WIRES)) == []
     assert less_likely_first("HX711_LINE", (Part.HX711_CHIP, Part.HX711_WIRES)) == [(Part.HX711_CHIP, Part.HX711_WIRES)]
     assert named_at("check the plate, then the coupling", Part.COUPLING) > named_at("check the plate", Part.PLATE)

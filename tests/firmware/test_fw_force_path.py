@@ -7,6 +7,7 @@ fails on firmware 1.1 (the issue's measured peaks in the comments)."""
 
 from __future__ import annotations
 
+import functools
 import time
 
 import pytest
@@ -15,6 +16,7 @@ from rigctl.core.drum import fault_advice
 from rigctl.core.faults import parse_fault
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumError
+from rigctl.rigs import drum_answer_timeout_s
 from rigctl.simulation.hil_bench import HilBench
 
 from .conftest import home
@@ -27,7 +29,7 @@ BOUND_G = 1650.0
 
 
 #: the bench: one HIL Mega with a truth log (rigctl.simulation.hil_bench)
-Bench = HilBench
+Bench = functools.partial(HilBench, answer_timeout_s=drum_answer_timeout_s("hil"))
 
 
 @pytest.fixture

@@ -236,8 +236,7 @@ static void press_dir_forget(ctl_t *c)
  * a latch means a back-off that proved its way or a HOME that proved the switch; that HOME releases the ratchet */
 #define RATCHET_FAULTS                                                                                            \
     (RIGCTL_FAULT_FORCE_LIMIT | RIGCTL_FAULT_POSITION_LIMIT | RIGCTL_FAULT_ACTUATOR_DIRECTION |                   \
-     RIGCTL_FAULT_CONTACT_LOST | RIGCTL_FAULT_CONTACT_STIFFNESS | RIGCTL_FAULT_LOADCELL_REVERSED |               \
-     RIGCTL_FAULT_CONTACT_MISSING)
+     RIGCTL_FAULT_CONTACT_LOST | RIGCTL_FAULT_CONTACT_STIFFNESS | RIGCTL_FAULT_LOADCELL_REVERSED)
 
 /* ---- the load ratchet (spec 2.11, issue 75): the ratchet guard's step count is lost at a reset (the count restarts
  * where the actuator stands), so a switch stuck closed let every reset's HOME leave it creeping until the load watch
@@ -476,28 +475,6 @@ static float contact_g(const ctl_t *c)
     return half < contact ? half : contact;
 }
 
-/* a press commanded with no force rise within its travel (spec 2.13, issue 75 item 5): the approach to a contact an
- * earlier probe located has gone PROBE_LOCATED_MARGIN_UM past its zero-force point, plus the travel that presses the
- * probe's contact load at its stiffness, and the reading has not shown the contact (the probe's approach is still
- * looking for it): the cell reads no load (a broken cell or excitation lead), the screw did not go where its steps say
- * (a slipping coupling, lost steps) or the plate is gone. The bound is the fast approach's own margin on the other
- * side of the contact (the contact found within it is where the fast approach assumes it); the true force there is at
- * most the probe's contact load plus k x PROBE_LOCATED_MARGIN_UM (1,550 g at 5 kg/mm) on a cell that reads nothing.
- * The latch backs off at once on the way HOME's switch proved (the reading shows no load): a slipping coupling unwinds
- * on the way back instead of catching up towards the sensor while the motor holds */
-static uint8_t contact_missing(const ctl_t *c)
-{
-    float spmm = (float)c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
-    float past = (float)RIGCTL_PROBE_LOCATED_MARGIN_UM * 1e-3f * spmm;
-    if (!c->contact_located || c->probe_phase != PROBE_APPROACH || c->located_k_g_per_step <= 0.0f) return 0;
-    /* no force rise: a load of PRESS_DIR_G or more is the contact found late (a coupling that slips, the 10 SPS
-     * reading's lag), which the probe takes on from here (fresh seed 882464: a latch at 31 g read held still to prove
-     * its back-off and the wound-up coupling caught up 0.28 mm towards the sensor); and only on a proven way, whose
-     * back-off runs at once (under BACKOFF_LOAD_G: no hold to prove it, so no catch-up while the motor holds) */
-    if ((c->force_gf < 0.0f ? -c->force_gf : c->force_gf) >= (float)RIGCTL_PRESS_DIR_G || !press_dir_proven(c)) return 0;
-    return (float)c->act_pos_steps > c->located_x0_steps + past + contact_g(c) / c->located_k_g_per_step;
-}
-
 /* the reading's zero off the contact (spec 2.13, issue 75 item 5): a force that moves with no step. The tare is taken
  * at home; a press that starts there at rest (as the warm-boot record's "at home" says) first judges its reading,
  * settled (HX711_RATE_PERIODS + 1 readings with the actuator still), against it: off by more than PRESS_DIR_G (the
@@ -585,7 +562,6 @@ static void probe_reading(ctl_t *c, float f)
             c->contact_valid = 1;
             c->contact_located = 1;
             c->located_x0_steps = c->contact_x0_steps;
-            c->located_k_g_per_step = c->contact_k_g_per_step;
             /* the probe's measuring step(s) went forward and the settled load rose with them: the way is proven for
              * the rest of this press (spec 2.11), until the release, HOME, a fault or the watch's evidence against */
             c->press_dir_held = f - c->probe_f1_gf >= (float)RIGCTL_PRESS_DIR_G;
@@ -626,10 +602,7 @@ static void engage(ctl_t *c)
 {
     force_pi_reset(&c->pi);
     press_dir_forget(c);
-    /* HOME's switch proof stands until the contact (2.11): the press leaves the closed switch, or home as the warm-boot
-     * record knows it (a back-off ends on its count a few steps short of the switch: the same place, the same void
-     * when the switch reads closed HOME_PROOF_MM out) */
-    c->press_dir_leave = (c->homed && c->home_switch) || at_home_at_rest(c);
+    c->press_dir_leave = c->homed && c->home_switch; /* HOME's switch proof stands until the contact (2.11) */
     c->probe_phase = c->contact_valid ? PROBE_NONE : PROBE_APPROACH; /* every press from rest probes (2.11) */
     if (c->probe_phase == PROBE_APPROACH && at_home_at_rest(c) && c->tared)
         c->probe_phase = PROBE_ZERO; /* from home at rest: its reading's zero first (2.13) */
@@ -1014,13 +987,6 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
             /* the two channels disagree: the reading lies (the position bounds the force where it stands) or
              * the actuator does not go where its steps say (a reversed motor: a back-off would press) */
             stop_unproven(c, RIGCTL_FAULT_POSITION_LIMIT);
-            break;
-        }
-        if (contact_missing(c)) { /* the contact stays located: the next press is bounded here again */
-            float x0 = c->located_x0_steps;
-            fault(c, RIGCTL_FAULT_CONTACT_MISSING);
-            c->contact_located = 1;
-            c->located_x0_steps = x0;
             break;
         }
         /* HOME's switch proof is void once the switch reads closed with the count HOME_PROOF_MM out (2.11): the
