@@ -107,7 +107,7 @@ CAUSES: dict[str, tuple[str, str]] = {
                        "a plate or mount changed since the calibration, the actuator's coupling (its set screws), the "
                        "HX711's DOUT and SCK wires, the load cell's wires (E+, E-, A+, A-), a wrong calibration mass, "
                        "the lead screw binding, the cell itself: check them in that order, then recalibrate with the "
-                       "reference mass (the GUI's calibration tab)" + _CRUSH),
+                       "reference mass (rigctl calibrate loadcell, or the GUI's calibration tab)" + _CRUSH),
     "loadcell-zero": ("the load cell read a force with nothing pressing",
                       "remove anything resting on the sensor or the actuator; else the plate or mount changed "
                       "(recalibrate: it stores the new contact) or its zero moved: check the cell's mount, then the "

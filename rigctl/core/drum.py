@@ -183,7 +183,7 @@ def hand_press_verdict(changes_g: "list[float] | tuple[float, ...]", weight_g: f
 ACTUATOR_DIRECTION_CAUSES = (
     "Tell the causes apart before changing any wire, the most likely first. With nothing touching the sensor, read "
     "FORCE_G (the status line): far from 0 g, the load cell's zero moved since its calibration (a mount changed, a "
-    "cable pulled): recalibrate it (rigctl calibrate) and change no wire. Else " + HAND_PRESS_STEP + " (rigctl "
+    "cable pulled): recalibrate it (rigctl calibrate loadcell) and change no wire. Else " + HAND_PRESS_STEP + " (rigctl "
     "doctor --check actuator-direction does it on a simulated rig). If they all fall, the cell reads "
     "reversed (A+/A- swapped at the HX711): swap A+ and A- and leave the motor alone (swapping its coils would drive "
     "HOME into the sensor). If they all rise, the cell is right, and that alone does not make the motor wrong: "
@@ -251,10 +251,10 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "the force went below -2 x FORCE_TOLERANCE_G while pressing. Tell the causes apart before changing any "
         "wire, the most likely first. With nothing touching the sensor, read FORCE_G (the status line): far from 0 g, "
         "the load cell's zero moved since its calibration (a tare taken under load, a mount changed): recalibrate it "
-        "(rigctl calibrate) and change no wire. Else " + HAND_PRESS_STEP + ". If they all fall, the cell is mounted "
+        "(rigctl calibrate loadcell) and change no wire. Else " + HAND_PRESS_STEP + ". If they all fall, the cell is mounted "
         "or wired the other way round: swap A+ and A- at the HX711 (or turn the cell over), then recalibrate. If "
         "they all rise, the cell and its wires are right and its scale is not (a wrong calibration mass): change no "
-        "wire, recalibrate it (rigctl calibrate).",
+        "wire, recalibrate it (rigctl calibrate loadcell).",
         (Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.CALIBRATION)),
     Fault.HOME_NOT_FOUND: FaultWords(
         "home switch not found",
@@ -366,8 +366,8 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "the HX711's DOUT or SCK wire); the reading's scale (a loose excitation lead: check E+, E-, A+, A-; a wrong "
         "calibration mass), which makes the reading and the force limit off by as much; the lead screw binding or the "
         "motor losing steps (check that it turns freely); the cell itself (overloaded, creeping, of another range). "
-        "Fix what you found, then recalibrate with the reference mass (the GUI's calibration tab, which stores the "
-        "contact's stiffness again). Then CLEAR_FAULT.",
+        "Fix what you found, then recalibrate with the reference mass (rigctl calibrate loadcell or the GUI's "
+        "calibration tab, which stores the contact's stiffness again). Then CLEAR_FAULT.",
         (Part.PLATE, Part.COUPLING, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.CALIBRATION, Part.LEAD_SCREW,
          Part.LOADCELL)),
     Fault.LOADCELL_ZERO: FaultWords(

@@ -144,7 +144,7 @@ ACTUATOR_REVERSED_FIX = ("the load cell reads a press as a rise, so the cell is 
                          "its way and stops where it is wrong): only if you see it close the gap to the sensor where "
                          "it should open it, power off and swap one coil pair of the actuator motor at its driver "
                          "(1A <-> 1B), then HOME; if it moves the right way, change no wire: check the home switch, "
-                         "its wire and the HX711's DOUT and SCK wires, and the load cell's zero (rigctl calibrate); "
+                         "its wire and the HX711's DOUT and SCK wires, and the load cell's zero (rigctl calibrate loadcell); "
                          f"{CRUSH_NOTE} (docs/hardware/wiring.md, actuator direction)")
 #: ... once it read the press as a fall: the cell is reversed, the motor is right
 CELL_REVERSED_FIX = ("the load cell reads a press as a fall: the cell is reversed, not the actuator. Power off and "
@@ -392,7 +392,7 @@ def check_loadcell_zero(ctx: DoctorContext) -> CheckResult:
     noise = float(np.std(forces))
     if abs(zero) > tol:
         return failed("loadcell-zero", f"the load cell reads {zero:+.1f} g at home (tolerance {tol} g)",
-                      "tare at home (the actuator released): rigctl calibrate, or the GUI's calibration tab; a reading "
+                      "tare at home (the actuator released): rigctl calibrate loadcell, or the GUI's calibration tab; a reading "
                       "that drifts back: check the cell's mounting and wiring", zero_g=zero, noise_g=noise)
     return passed("loadcell-zero", f"{zero:+.1f} g at home (sd {noise:.1f} g, tolerance {tol} g)", zero_g=zero,
                   noise_g=noise)
@@ -419,8 +419,8 @@ def check_loadcell_scale(ctx: DoctorContext) -> CheckResult:
     if getattr(drum.read_status(), "calibration_defaults", False) and not ctx.simulated:
         lost = " (the rig config holds one: the EEPROM lost it)" if "counts_per_g" in cal else ""
         return failed("loadcell-scale", f"the Mega's EEPROM calibration was missing or failed its checksum at boot: it "
-                      f"runs on the default scale{lost}", "calibrate the load cell (the GUI's calibration tab), which "
-                      "saves it to the EEPROM", calibration_defaults=True)
+                      f"runs on the default scale{lost}", "calibrate the load cell (rigctl calibrate loadcell, or the "
+                      "GUI's calibration tab), which saves it to the EEPROM", calibration_defaults=True)
     if "counts_per_g" not in cal:
         raise Skip("the rig config holds no load-cell calibration: calibrate first")
     board = _board_counts_per_g(drum.settings())
@@ -430,8 +430,8 @@ def check_loadcell_scale(ctx: DoctorContext) -> CheckResult:
     values = {"board_counts_per_g": board, "config_counts_per_g": want}
     if abs(board - want) > max(0.01, 0.001 * abs(want)):
         return failed("loadcell-scale", f"the Mega uses {board:g} counts/g, the rig config's calibration {want:g} (the "
-                      "EEPROM was lost, or another cell was calibrated)", "calibrate the load cell again (the GUI's "
-                      "calibration tab), which saves it to the EEPROM and the rig config", **values)
+                      "EEPROM was lost, or another cell was calibrated)", "calibrate the load cell again (rigctl "
+                      "calibrate loadcell, or the GUI's calibration tab), which saves it to the EEPROM and the rig config", **values)
     return passed("loadcell-scale", f"{board:g} counts/g = the rig config's calibration", **values)
 
 
@@ -440,8 +440,9 @@ def check_loadcell_scale(ctx: DoctorContext) -> CheckResult:
 #: every press, docs/wire-protocol.md 2.12, allows 15 %: this one finds what that one lets through)
 REFERENCE_MASS_G = 500.0
 REFERENCE_MASS_TOLERANCE_PCT = 2.0
-REFERENCE_MASS_FIX = ("recalibrate the load cell with the reference mass (the GUI's calibration tab, or "
-                      "rigctl.operations.calibrate_loadcell: it stores the scale and the contact's stiffness together); if it reads wrong "
+REFERENCE_MASS_FIX = ("recalibrate the load cell with the reference mass (rigctl calibrate loadcell --mass-g 500, or "
+                      "the GUI's calibration tab: it stores the scale and the contact's stiffness together); if it "
+                      "reads wrong "
                       "again, check the cell, its excitation and signal wires and that it is the cell of the rig's "
                       "range")
 
