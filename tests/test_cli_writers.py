@@ -59,6 +59,8 @@ RUNS = {
                                                         "--overwrite"], "session"),
     # the rig config is read and updated in place by design (its own input): the other three cases apply
     (("doctor",), "config_path"): (".json", lambda p: ["doctor", "--sim", "--save", "--config", p["T"]], None),
+    (("calibrate", "loadcell"), "config_path"): (".json", lambda p: ["calibrate", "loadcell", "--mass-g", "200",
+                                                                      "--inprocess", "--config", p["T"]], None),
     (("doctor",), "truth_log"): (".csv", lambda p: ["doctor", "--sim", "--config", p["config"], "--truth-log",
                                                     p["T"]], "config"),
     (("encode",), "out"): (".h5", lambda p: ["encode", p["session"], "--out", p["T"], "--overwrite"], "session"),
@@ -224,7 +226,8 @@ SIDECARS = (".part", ".lock", ".creating", ".journal")
 #: no fixed name), import-fabricslide (importers.write_session, as import), serve's queue and token files
 #: (sidecars.write_small_file): tests/storage/test_storage_sidecars.py; serve's runs: tests/operations/
 #: test_serve_races.py
-SIDECAR_RUNS = {(("acquire",), "out"): (), (("doctor",), "config_path"): (), (("encode",), "out"): (),
+SIDECAR_RUNS = {(("acquire",), "out"): (), (("calibrate", "loadcell"), "config_path"): (),
+                (("doctor",), "config_path"): (), (("encode",), "out"): (),
                 (("export", "nwb"), "out"): (), (("import",), "out"): ("--texture", "A"),
                 (("sim", "dataset"), "out"): ()}
 

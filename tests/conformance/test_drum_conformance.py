@@ -180,7 +180,7 @@ def test_identity_and_power_up_defaults(controller, drum):
                                            for r in ADDRESSES]
     st = DrumStatus.from_registers(controller.power_up_inputs)
     # 1.2: the force path of issue 55 (spec 2.11); 1.3: what proves the actuator's way for a back-off (2.11)
-    assert st.firmware == wire.MEGA_FIRMWARE_VERSION == (1, 7)
+    assert st.firmware == wire.MEGA_FIRMWARE_VERSION == (1, 8)
     assert controller.power_up_inputs[IR.FIRMWARE_VERSION] == 264
     own = firmware.source_digest()[:12]
     words = [controller.power_up_inputs[r] for r in (IR.BUILD_ID_0, IR.BUILD_ID_1, IR.BUILD_ID_2)]
