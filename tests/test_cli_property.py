@@ -252,6 +252,15 @@ def test_doctor(inputs, tmp_path, inprocess_rig, data):
 
 @given(data=st.data())
 @PROPERTY
+def test_calibrate_loadcell(inputs, tmp_path, inprocess_rig, data):
+    opts = [(o, data.draw(_maybe(s), label=o)) for o, s in (
+        ("--mass-g", st.one_of(NUMBER, st.just("200"))), ("--seed", NUMBER), ("--ack", st.sampled_from(["", " ", "x"])))]
+    flags = data.draw(st.lists(st.sampled_from(["--sim", "--inprocess"]), unique=True), label="flags")
+    _check(inputs, tmp_path, ["calibrate", "loadcell", *flags, *_opts(opts)])
+
+
+@given(data=st.data())
+@PROPERTY
 def test_gui_without_a_display(inputs, tmp_path, monkeypatch, data):
     for name in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM"):
         monkeypatch.delenv(name, raising=False)
@@ -404,7 +413,7 @@ DRIVEN = {("encode",), ("sim", "dataset"), ("analyze",), ("import",), ("export",
           ("export", "trials"), ("info",), ("protocols",),
           ("acquire",), ("doctor",), ("gui",), ("firmware",), ("ports",), ("udev-rules",), ("import-fabricslide",),
           ("sim",), ("serve",), ("sim", "operator"), ("rigs",), ("sim", "inject"), ("export", "nir"),
-          ("safety", "table")}
+          ("safety", "table"), ("calibrate", "loadcell")}
 
 
 def test_every_command_is_driven(cli_commands):

@@ -4,9 +4,11 @@ starts calibrated, a corrupted record)."""
 
 from __future__ import annotations
 
+import fcntl
 import re
 import subprocess
 from pathlib import Path
+from typing import IO
 
 from rigctl.devices import wire
 from rigctl.devices.wire import HoldingRegister as HR, crc16
@@ -25,13 +27,30 @@ class EepromError(Exception):
     """The image's symbol table cannot be read, or holds no such variable."""
 
 
+def _symbols(elf: Path | str) -> str:
+    """The symbol table of ``elf`` (``avr-nm``), read under its build folder's lock, shared
+    (:func:`rigctl.firmware.make` holds it exclusive while it builds: a CI run's avr-nm read mega_drum.elf while another
+    worker's make relinked it, and failed twice). Raises :class:`EepromError`."""
+    elf = Path(elf)
+    try:
+        lock: IO[str] | None = open(elf.parent / ".lock", "a")  # noqa: SIM115 - closed below
+    except OSError:  # a folder this process cannot write (someone else's build): read it as it is
+        lock = None
+    try:
+        if lock is not None:
+            fcntl.flock(lock, fcntl.LOCK_SH)
+        return subprocess.run(["avr-nm", str(elf)], capture_output=True, text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError) as exc:
+        raise EepromError(f"cannot read the symbols of {elf}: {exc}") from None
+    finally:
+        if lock is not None:
+            lock.close()
+
+
 def eeprom_offset(elf: Path | str, symbol: str = CALIBRATION_SYMBOL) -> int:
     """The EEPROM address of the image's EEMEM variable ``symbol``, from its symbol table (``avr-nm``,
     binutils-avr). Raises :class:`EepromError`."""
-    try:
-        out = subprocess.run(["avr-nm", str(elf)], capture_output=True, text=True, check=True).stdout
-    except (OSError, subprocess.CalledProcessError) as exc:
-        raise EepromError(f"cannot read the symbols of {elf}: {exc}") from None
+    out = _symbols(elf)
     m = re.search(rf"^([0-9a-fA-F]+) \w \S*{re.escape(symbol)}\b", out, re.M)
     if m is None:
         raise EepromError(f"no {symbol} in {elf}")
@@ -47,10 +66,7 @@ def state_address(elf: Path | str) -> int:
     ctl``; ``state`` follows the ``hreg`` array of :data:`rigctl.devices.wire.N_HOLDING` 16-bit registers,
     controller.h), from the image's symbol table (``avr-nm``): the harness's ``--state-addr``. Raises
     :class:`EepromError`."""
-    try:
-        out = subprocess.run(["avr-nm", str(elf)], capture_output=True, text=True, check=True).stdout
-    except (OSError, subprocess.CalledProcessError) as exc:
-        raise EepromError(f"cannot read the symbols of {elf}: {exc}") from None
+    out = _symbols(elf)
     m = re.search(r"^([0-9a-fA-F]+) [bBdD] (?:_ZL3ctl|ctl)(?:\.lto_priv\.\d+)?$", out, re.M)
     if m is None:
         raise EepromError(f"no controller (ctl) in {elf}")
