@@ -12,9 +12,10 @@ import click
 
 from rigctl.cli.ranges import SEED, floats
 from rigctl.cli.rig_flags import (
+    acknowledgement,
     ask_operator_mass,
     check_config,
-    check_one_rig,
+    check_rig_face_flags,
     drum_port_option,
     hil_bootloaders_option,
     inprocess_option,
@@ -55,11 +56,7 @@ def loadcell(mass_g, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port
     press compares with it: docs/wire-protocol.md 2.12). Exit status 1 if the calibration failed (nothing stored
     then), 2 for a usage error."""
     hil = hil or hil_bootloaders
-    if ack is not None and not ack.strip():
-        raise click.UsageError("--ack takes the reason the fault may be cleared (logged)")
-    if (drum_port is None) != (taxel_port is None):
-        raise click.UsageError("the hardware rig needs both --drum-port and --taxel-port")
-    check_one_rig(sim=sim, hil=hil, inprocess=inprocess, drum_port=drum_port)
+    check_rig_face_flags(ack=ack, sim=sim, hil=hil, inprocess=inprocess, drum_port=drum_port, taxel_port=taxel_port)
     hardware = drum_port is not None
     if hardware and not sys.stdin.isatty():
         raise click.UsageError("on the hardware rig the calibration asks you to put the mass on the load cell and take "
@@ -69,11 +66,7 @@ def loadcell(mass_g, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port
 
     source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, bootloaders=hil_bootloaders,
                                   inprocess=inprocess)
-    acknowledge = None
-    if ack is not None:
-        from rigctl.acquisition.safety import operator_name
-
-        acknowledge = (ack.strip(), operator_name())
+    acknowledge = acknowledgement(ack)
     place = ask_operator_mass if hardware else None
     with open_control(source, home=Home.UNLESS_FAULTED, seed=seed, host_config_path=config_path,
                       acknowledge=acknowledge) as control:

@@ -11,9 +11,10 @@ import click
 
 from rigctl.cli.ranges import SEED, floats
 from rigctl.cli.rig_flags import (
+    acknowledgement,
     ask_operator_mass,
     check_config,
-    check_one_rig,
+    check_rig_face_flags,
     check_truth_log,
     drum_port_option,
     hil_bootloaders_option,
@@ -65,11 +66,7 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
             click.echo(f"{c.name:18} {c.title}{' (moves the rig)' if c.moves else ''}")
         return
     hil = hil or hil_bootloaders
-    if ack is not None and not ack.strip():
-        raise click.UsageError("--ack takes the reason the fault may be cleared (logged)")
-    if (drum_port is None) != (taxel_port is None):
-        raise click.UsageError("the hardware rig needs both --drum-port and --taxel-port")
-    check_one_rig(sim=sim, hil=hil, inprocess=inprocess, drum_port=drum_port)
+    check_rig_face_flags(ack=ack, sim=sim, hil=hil, inprocess=inprocess, drum_port=drum_port, taxel_port=taxel_port)
     from rigctl.operations import RigSource, doctor as run
 
     check_config(config_path, save)
@@ -92,11 +89,7 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
     why = source.injection_refusal()
     if why:
         raise click.UsageError(why)
-    acknowledge = None
-    if ack is not None:  # imported only then: a doctor run as another user may not read more of the sources
-        from rigctl.acquisition.safety import operator_name
-
-        acknowledge = (ack.strip(), operator_name())
+    acknowledge = acknowledgement(ack)
     lines = _SkipFolder(click.echo)
     # on hardware the operator puts the reference mass on the cell when asked (a terminal only: a script skips it)
     place_mass = ask_operator_mass if source.kind == "hardware" and sys.stdin.isatty() else None

@@ -195,3 +195,24 @@ def ask_operator_mass(mass_g: float) -> None:
     click.prompt(f"put the {mass_g:g} g reference mass on the load cell, then press Enter" if mass_g
                  else "take the reference mass off the load cell, then press Enter", default="", show_default=False,
                  err=True)
+
+
+def check_rig_face_flags(*, ack: str | None, sim: bool, hil: bool, inprocess: bool, drum_port: str | None,
+                         taxel_port: str | None) -> None:
+    """The flags ``doctor`` and ``calibrate`` share, checked before the rig opens: ``--ack`` with a reason, both
+    hardware ports or neither, one rig (:func:`check_one_rig`). Raises click.UsageError."""
+    if ack is not None and not ack.strip():
+        raise click.UsageError("--ack takes the reason the fault may be cleared (logged)")
+    if (drum_port is None) != (taxel_port is None):
+        raise click.UsageError("the hardware rig needs both --drum-port and --taxel-port")
+    check_one_rig(sim=sim, hil=hil, inprocess=inprocess, drum_port=drum_port)
+
+
+def acknowledgement(ack: str | None) -> tuple[str, str] | None:
+    """``--ack REASON`` as :func:`rigctl.operations.open_control` takes it: ``(reason, the operator's login name)``;
+    None without it."""
+    if ack is None:
+        return None
+    from rigctl.acquisition.safety import operator_name  # imported only then: a run as another user may read less
+
+    return ack.strip(), operator_name()
