@@ -102,6 +102,9 @@ def test_the_load_cells_gain_and_zero_and_the_drivers_enable(bench):
     st = bench.drum.read_status()
     assert Flag.DRIVERS_ENABLED not in st.flags and not bench.rig.next_telemetry().drivers_enabled
     bench.inject("driver-enable-stuck@0")
+    # the harness applies it between its cycles: a telemetry line already on its way may predate it (a loaded CI run
+    # read one at t = 1.18 s, before it); 0.1 s of the Mega's time is many cycles later
+    bench.sim_wait(0.1)
     assert bench.rig.next_telemetry().drivers_enabled
 
 
