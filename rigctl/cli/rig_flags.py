@@ -148,7 +148,8 @@ truth_log_option = click.option(
     "--truth-log", "truth_log", type=click.Path(dir_okay=False, writable=True, path_type=Path), default=None,
     metavar="FILE",
     help="With --sim or --hil: write the physical model's ground truth to FILE (CSV: wall_time_s, Unix time; time_s "
-         "from the run's start, the clock --inject uses; true_force_g, actuator_mm, drum_speed_mm_s; >= 100 Hz). "
+         "from the run's start, the clock --inject uses; true_force_g, actuator_mm, drum_speed_mm_s, "
+         "motor_mm (the actuator motor's own travel); >= 100 Hz). "
          "FILE must not exist.")
 
 

@@ -58,7 +58,8 @@ def start_sim_process(port_dir: str, *, texture: str = "A", seed: int = 0) -> tu
               metavar="FILE",
               help="Write the physical model's ground truth to FILE while it runs (CSV: wall_time_s, Unix time; time_s "
                    "from the rig's start, the clock `rigctl sim inject` uses; true_force_g, actuator_mm, "
-                   "drum_speed_mm_s; >= 100 Hz, each row flushed: another process may read it live). FILE must not "
+                   "drum_speed_mm_s, motor_mm (the actuator motor's own travel); >= 100 Hz, each row flushed: another "
+                   "process may read it live). FILE must not "
                    "exist.")
 @click.pass_context
 def sim(ctx, seed, texture, replay_dir, port_dir, truth_log):

@@ -14,9 +14,13 @@ The invariants (:func:`check_invariants`) are judged on the truth log's columns 
 the firmware read; :func:`read_truth_log` takes them from a truth log file):
 
 - ``over-force``: the true force stays <= 1.1 x FORCE_LIMIT_G (:data:`FORCE_BOUND_G`, 1650 g);
-- ``step-after-latch``: once the controller latched a fault, the actuator takes no step towards the sensor
+- ``step-after-latch``: once the controller latched a fault, the actuator's motor takes no step towards the sensor
   (:data:`LATCH_STEP_MM` of slack for the step in flight, :data:`LATCH_GRACE_S` after the latch) beyond its
-  back-off's proof steps (:data:`LATCH_PROOF_MM` in all, spec 2.11);
+  back-off's proof steps (:data:`LATCH_PROOF_MM` in all, spec 2.11). Judged on ``motor_mm``, the motion the motor's
+  own steps made (a swapped coil pair's back-off towards the sensor is one), not on the screw's: a slipping
+  coupling wound up before the latch catches up while the motor holds and moves the screw with no step, which no
+  action of the controller after the latch causes or prevents (docs/safety.md, "What the campaign's step-after-latch
+  judges"); its force is judged by ``over-force``;
 - ``trial-without-contact``: a trial the host recorded had the sensor in contact the whole time the drum ran for
   it (true force >= :data:`CONTACT_G`).
 
@@ -45,7 +49,7 @@ __all__ = ["CAMPAIGN_FAULTS", "CAMPAIGN_FAULTS_V1", "Case", "BrokenPart", "FAULT
            "check_invariants", "ModelTruth", "Violation"]
 
 #: the truth log's columns the invariants judge, in this order
-COLUMNS = ("time_s", "true_force_g", "actuator_mm", "drum_speed_mm_s")
+COLUMNS = ("time_s", "true_force_g", "actuator_mm", "drum_speed_mm_s", "motor_mm")
 #: the moments a fault can start in, in the order a run passes them (``power-on``: FAULT@0, before the rig opens)
 MOMENTS = ("power-on", "home", "probe", "settled", "running", "retract", "between", "approach")
 #: the bound on the true force any single fault must keep, g: 1.1 x FORCE_LIMIT_G (docs/safety.md)
@@ -214,7 +218,7 @@ class Violation:
 
 def check_invariants(truth: np.ndarray, *, latches: Sequence[tuple[float, float | None]] = (),
                      trials: Sequence[tuple[float, float, float]] = ()) -> list[Violation]:
-    """The invariants on the truth rows ``truth`` ((n, 4): :data:`COLUMNS`, time ascending).
+    """The invariants on the truth rows ``truth`` ((n, 5): :data:`COLUMNS`, time ascending).
 
     Parameters
     ----------
@@ -226,7 +230,7 @@ def check_invariants(truth: np.ndarray, *, latches: Sequence[tuple[float, float 
     out: list[Violation] = []
     if len(truth) == 0:
         return out
-    t, force, act, drum = truth[:, 0], truth[:, 1], truth[:, 2], truth[:, 3]
+    t, force, drum, act = truth[:, 0], truth[:, 1], truth[:, 3], truth[:, 4]  # act: the motor's own travel
     i = int(np.argmax(force))
     if force[i] > FORCE_BOUND_G:
         out.append(Violation("over-force", float(t[i]), f"true force {force[i]:.0f} g > {FORCE_BOUND_G:.0f} g"))
@@ -237,7 +241,7 @@ def check_invariants(truth: np.ndarray, *, latches: Sequence[tuple[float, float 
         if len(after):
             j = after[int(np.argmax(act[after]))]
             if act[j] > at_latch + max(LATCH_STEP_MM, LATCH_PROOF_MM):
-                out.append(Violation("step-after-latch", float(t[j]), f"the actuator moved {act[j] - at_latch:.3f} mm "
+                out.append(Violation("step-after-latch", float(t[j]), f"the actuator's motor stepped {act[j] - at_latch:.3f} mm "
                                      f"towards the sensor {t[j] - latch_s:.2f} s after the latch at {latch_s:.2f} s"))
                 break
     for start, end, speed in trials:
@@ -250,7 +254,7 @@ def check_invariants(truth: np.ndarray, *, latches: Sequence[tuple[float, float 
 
 
 def read_truth_log(path: str | os.PathLike[str]) -> np.ndarray:
-    """The :data:`COLUMNS` of a truth log CSV (:class:`rigctl.simulation.truth.TruthLog`), (n, 4) float64, picked by
+    """The :data:`COLUMNS` of a truth log CSV (:class:`rigctl.simulation.truth.TruthLog`), (n, 5) float64, picked by
     the header's names. Raises ValueError for a file without them."""
     with open(path, encoding="ascii") as f:
         header = f.readline().strip().split(",")
@@ -264,7 +268,8 @@ def read_truth_log(path: str | os.PathLike[str]) -> np.ndarray:
 class ModelTruth:
     """The truth rows of an in-process model rig (:class:`rigctl.simulation.inprocess.InProcessEngine`): after each
     control period of its controller (<= its ``max_step_ms``, ending at each HX711 conversion) one row of the model's
-    contact force, actuator position and drum speed, and the first moment its controller was in FAULT.
+    contact force, actuator position, drum speed and actuator motor position (:data:`COLUMNS`), and the first moment
+    its controller was in FAULT.
 
     Parameters
     ----------
@@ -274,7 +279,7 @@ class ModelTruth:
     def __init__(self, engine: Any) -> None:
         self.engine = engine
         self.t0_s = 0.0
-        self.rows: list[tuple[float, float, float, float]] = []
+        self.rows: list[tuple[float, float, float, float, float]] = []
         #: each time the controller was in FAULT: [start_s, end_s or None]
         self.latches: list[list[float | None]] = []
         controller, model = engine.controller, engine.model
@@ -284,7 +289,8 @@ class ModelTruth:
         def control_period(n_ms: int) -> None:
             step(n_ms)
             t = model.time_s - self.t0_s
-            self.rows.append((t, model.contact_force_g, model.actuator_mm, model.drum_speed_mm_s))
+            self.rows.append((t, model.contact_force_g, model.actuator_mm, model.drum_speed_mm_s,
+                              model.actuator_motor_mm))
             faulted = int(controller.state) == fault_state
             if faulted and (not self.latches or self.latches[-1][1] is not None):
                 self.latches.append([t, None])
@@ -303,5 +309,5 @@ class ModelTruth:
         self.t0_s = float(self.engine.model.time_s)
 
     def array(self) -> np.ndarray:
-        """The rows so far, (n, 4) float64 (:data:`COLUMNS`)."""
-        return np.asarray(self.rows, dtype=float).reshape(-1, 4)
+        """The rows so far, (n, 5) float64 (:data:`COLUMNS`)."""
+        return np.asarray(self.rows, dtype=float).reshape(-1, len(COLUMNS))

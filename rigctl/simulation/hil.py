@@ -98,6 +98,9 @@ class Telemetry:
     force_max_g: float = 0.0  #: the largest true force since the harness's previous report, g
     act_max_mm: float = 0.0  #: the actuator's furthest position towards the sensor since that report, mm
     drum_turn: float = 0.0  #: the real drum's revolutions (slip, a stall, a reversed motor included)
+    #: the actuator motor's furthest position towards the sensor since that report, as the screw travel it turns, mm
+    #: (the screw's plus a slipping coupling's wind-up: moved only by the motor's real steps)
+    motor_max_mm: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -681,7 +684,7 @@ class HilRig:
                             kv["force_g"], int(kv["index"]), time.monotonic(), bool(kv.get("en", 1)),
                             int(kv.get("steps_disabled", 0)), int(kv.get("ee_writes", 0)),
                             kv.get("force_max_g", kv["force_g"]), kv.get("act_max_mm", kv["act_mm"]),
-                            kv.get("drum_turn", 0.0))
+                            kv.get("drum_turn", 0.0), kv.get("motor_max_mm", kv.get("act_max_mm", kv["act_mm"])))
             with self._cond:
                 self.telemetry = tel
                 self.telemetry_history.append(tel)
@@ -694,7 +697,8 @@ class HilRig:
                 prev = self.telemetry_history[-2]
                 dt = max((tel.cycle - prev.cycle) / 16e6, 1e-6)
                 circ = float(np.pi * self.config.drum.diameter_mm)
-                self.truth.row(tel.t_s, tel.force_max_g, tel.act_max_mm, (tel.drum_turn - prev.drum_turn) * circ / dt)
+                self.truth.row(tel.t_s, tel.force_max_g, tel.act_max_mm, (tel.drum_turn - prev.drum_turn) * circ / dt,
+                               tel.motor_max_mm)
         elif line.startswith("STATE "):
             kv = _parse_kv(line)
             faulted = int(kv["state"]) == int(wire.DrumState.FAULT)

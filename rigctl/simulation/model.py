@@ -1041,6 +1041,16 @@ class RigModel:
         with self._lock:
             return self._actuator_mm
 
+    @property
+    def actuator_motor_mm(self) -> float:
+        """The actuator motor's position as the lead screw travel it turns, mm from home (positive towards the sensor):
+        :attr:`actuator_mm` plus the coupling's wind-up (``coupling-slip``: the motor turned, the screw stayed). It
+        moves only by the steps the motor really takes (a swapped coil pair's the other way; lost steps, a stall and
+        the rear stop move it not); a wound coupling's catch-up moves the screw and not it. The truth log's
+        ``motor_mm``: what the controller's own steps moved (the campaign's step-after-latch judge)."""
+        with self._lock:
+            return self._actuator_mm + self._windup_mm
+
     def place_mass(self, mass_g: float) -> None:
         """Rest a calibration mass of ``mass_g`` g on the load cell (0 removes it).
 

@@ -328,7 +328,7 @@ class SimulatedRig:
             m = self.model
             for done in range(0, n_ms, TRUTH_STEP_MS):
                 parts.append(self.mega.step(min(TRUTH_STEP_MS, n_ms - done), render=render))
-                self.truth.row(m.time_s, m.contact_force_g, m.actuator_mm, m.drum_speed_mm_s)
+                self.truth.row(m.time_s, m.contact_force_g, m.actuator_mm, m.drum_speed_mm_s, m.actuator_motor_mm)
             if len(parts) == 1:
                 samples, sync_in = parts[0]
             else:

@@ -6,10 +6,13 @@ to one physics step later; what another process's actions are compared with), ``
 the moment the rig was open, the clock ``--inject`` times its faults on: the physics clock of the simulated rig, the
 Mega's simulated time under simavr), ``true_force_g`` (the contact
 force on the load cell, g, not the HX711's delayed reading), ``actuator_mm`` (the actuator's real position from home,
-mm, + towards the sensor), ``drum_speed_mm_s`` (the drum's real surface speed, mm/s). One row per physics step of
+mm, + towards the sensor), ``drum_speed_mm_s`` (the drum's real surface speed, mm/s), ``motor_mm`` (the actuator
+motor's position as the screw travel it turns, mm from home, + towards the sensor: ``actuator_mm`` plus a slipping
+coupling's wind-up; it moves only by the steps the motor really takes, so a wound coupling's catch-up moves
+``actuator_mm`` and not it: what the controller's own steps moved). One row per physics step of
 the simulated rig (<= 10 ms) or per report of the HIL harness (every 10 ms of simulated time, and at each change of
-the controller's state): >= 100 Hz; under simavr a row's force is the largest and its actuator position the furthest
-towards the sensor since the previous row (the harness watches them every 0.1 ms), so no peak between rows is lost. The file is
+the controller's state): >= 100 Hz; under simavr a row's force is the largest and its actuator and motor positions the
+furthest towards the sensor since the previous row (the harness watches them every 0.1 ms), so no peak between rows is lost. The file is
 flushed after every row: another process may read it while it grows (``rigctl sim --truth-log``), whole lines only.
 """
 
@@ -22,7 +25,7 @@ from pathlib import Path
 
 __all__ = ["TruthLog", "TRUTH_COLUMNS"]
 
-TRUTH_COLUMNS = ("wall_time_s", "time_s", "true_force_g", "actuator_mm", "drum_speed_mm_s")
+TRUTH_COLUMNS = ("wall_time_s", "time_s", "true_force_g", "actuator_mm", "drum_speed_mm_s", "motor_mm")
 
 
 class TruthLog:
@@ -53,13 +56,14 @@ class TruthLog:
             if self._t0 is None:
                 self._t0 = float(t0_s)
 
-    def row(self, t_s: float, true_force_g: float, actuator_mm: float, drum_speed_mm_s: float) -> None:
+    def row(self, t_s: float, true_force_g: float, actuator_mm: float, drum_speed_mm_s: float, motor_mm: float
+            ) -> None:
         """One row at the physics clock's ``t_s`` (nothing before :meth:`start`, or after :meth:`close`)."""
         with self._lock:
             if self._t0 is None or self._file.closed or t_s < self._t0:
                 return
             self._file.write(f"{time.time():.4f},{t_s - self._t0:.4f},{true_force_g:.2f},{actuator_mm:.4f},"
-                             f"{drum_speed_mm_s:.3f}\n")
+                             f"{drum_speed_mm_s:.3f},{motor_mm:.4f}\n")
             self._file.flush()  # whole rows for a reader in another process (one write each)
             self.rows += 1
 

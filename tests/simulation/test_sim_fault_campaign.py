@@ -25,13 +25,16 @@ SLICE_SEED = 5500
 
 
 def _truth(rows):
-    return np.asarray(rows, dtype=float).reshape(-1, 4)
+    """Truth rows (time_s, true_force_g, actuator_mm, drum_speed_mm_s[, motor_mm]); without motor_mm the motor is
+    where the screw is (no wind-up)."""
+    a = np.asarray(rows, dtype=float)
+    return a if a.shape[1] == 5 else np.column_stack([a, a[:, 2]])
 
 
 def test_the_invariants_fail_on_each_kind_of_violation():
-    """Each invariant judged on truth rows (time_s, true_force_g, actuator_mm, drum_speed_mm_s): a clean run passes;
-    1651 g fails over-force; the actuator 0.1 mm (or 33 um: more than a back-off's proof steps) further towards the
-    sensor after a latch fails, 31 um does not (not before it, not
+    """Each invariant judged on truth rows (time_s, true_force_g, actuator_mm, drum_speed_mm_s, motor_mm): a clean run
+    passes; 1651 g fails over-force; the actuator's motor 0.1 mm (or 33 um: more than a back-off's proof steps)
+    further towards the sensor after a latch fails, 31 um does not (not before it, not
     after the latch was acknowledged, not within its own control period); a recorded trial whose drum ran while the
     true force was 0 fails trial-without-contact (a trial the drum did not run for is not judged)."""
     clean = _truth([(0.0, 0.0, 0.0, 0.0), (1.0, 800.0, 5.0, 0.0), (2.0, 1000.0, 5.1, 80.0), (3.0, 990.0, 5.1, 80.0),
@@ -45,9 +48,9 @@ def test_the_invariants_fail_on_each_kind_of_violation():
     assert check_invariants(clean, latches=[(1.5, 1.9)]) == []  # acknowledged before the step
     assert check_invariants(clean, latches=[(1.998, None)]) == []  # the step within the latch's own period
     proof = clean.copy()  # a back-off's proof steps on a reversed motor (spec 2.11): at most LATCH_PROOF_MM, 32 um
-    proof[2, 2] = proof[3, 2] = 5.0 + LATCH_PROOF_MM - 0.001
+    proof[2:4, 2] = proof[2:4, 4] = 5.0 + LATCH_PROOF_MM - 0.001
     assert check_invariants(proof, latches=[(1.5, None)]) == []
-    proof[3, 2] = 5.0 + LATCH_PROOF_MM + 0.001
+    proof[3, 2] = proof[3, 4] = 5.0 + LATCH_PROOF_MM + 0.001
     (v,) = check_invariants(proof, latches=[(1.5, None)])
     assert v.kind == "step-after-latch" and v.time_s == 3.0 and "0.033 mm" in v.detail
     walked_off = clean.copy()
@@ -55,6 +58,26 @@ def test_the_invariants_fail_on_each_kind_of_violation():
     (v,) = check_invariants(walked_off, trials=[(1.5, 3.2, 80.0)])
     assert v.kind == "trial-without-contact" and v.time_s == 3.0
     assert check_invariants(walked_off, trials=[(1.5, 3.2, 200.0)]) == []  # the drum never ran at that trial's speed
+
+
+def test_step_after_latch_judges_the_motors_steps_and_a_catch_up_by_its_force():
+    """The step-after-latch judge reads the motor's own travel (motor_mm), not the screw's: a coupling wound up 0.5 mm
+    before a latch catches up after it while the motor holds (the screw jumps, the motor stands): no step after the
+    latch, its force judged by over-force (1,400 g: none; 1,700 g: over-force only). A reversed motor's back-off that
+    turns 0.1 mm towards the sensor is a step after the latch whether the screw followed or the coupling slipped."""
+    rows = [(0.0, 0.0, 0.0, 0.0, 0.0), (1.0, 0.0, 2.5, 0.0, 3.0), (2.0, 1400.0, 3.0, 0.0, 3.0),
+            (3.0, 1400.0, 3.0, 0.0, 3.0)]
+    catch_up = _truth(rows)
+    assert check_invariants(catch_up, latches=[(1.5, None)]) == []
+    catch_up[2:, 1] = 1700.0
+    assert [v.kind for v in check_invariants(catch_up, latches=[(1.5, None)])] == ["over-force"]
+    screw_only = _truth([r[:4] for r in rows])  # the same run judged as if the motor had moved the screw: a step
+    assert [v.kind for v in check_invariants(screw_only, latches=[(1.5, None)])] == ["step-after-latch"]
+    for screw_mm in (3.1, 3.0):  # the motor stepped 0.1 mm in: the screw followed, or the coupling took it
+        reversed_backoff = _truth([(0.0, 0.0, 0.0, 0.0, 0.0), (1.0, 500.0, 3.0, 0.0, 3.0),
+                                   (2.0, 600.0, screw_mm, 0.0, 3.1)])
+        (v,) = check_invariants(reversed_backoff, latches=[(1.5, None)])
+        assert v.kind == "step-after-latch" and "0.100 mm" in v.detail
 
 
 def test_cases_are_drawn_from_their_seed_over_the_hazard_table():
@@ -187,11 +210,11 @@ def test_the_truth_log_columns_are_read_by_name(tmp_path):
 
     log = TruthLog(tmp_path / "t.csv")
     log.start(10.0)
-    log.row(10.5, 812.0, 3.25, 80.0)
-    log.row(11.0, 1650.5, 3.5, 0.0)
+    log.row(10.5, 812.0, 3.25, 80.0, 3.5)
+    log.row(11.0, 1650.5, 3.5, 0.0, 3.5)
     log.close()
     rows = read_truth_log(tmp_path / "t.csv")
-    assert rows.tolist() == [[0.5, 812.0, 3.25, 80.0], [1.0, 1650.5, 3.5, 0.0]]
+    assert rows.tolist() == [[0.5, 812.0, 3.25, 80.0, 3.5], [1.0, 1650.5, 3.5, 0.0, 3.5]]
     assert check_invariants(rows)[0].kind == "over-force"
     (tmp_path / "x.csv").write_text("a,b\n1,2\n")
     with pytest.raises(ValueError, match="no truth log"):
@@ -239,7 +262,8 @@ def test_a_link_cut_from_power_on_is_refused_at_open_and_judged_not_skipped(tmp_
     case = Case(seed=731018, fault="host-silence", value=None, moment="power-on", moment_fraction=0.11,
                 duration_s=math.inf, stiffness_g_per_mm=1733.0, hx711_rate_sps=80, forces_g=(1467.0, 793.0),
                 speed_mm_s=40.0)
-    truth = np.array([[0.0, 0.0, 0.0, 0.0], [4.0, 0.0, 0.0, 0.0]])
+    truth = np.zeros((2, 5))
+    truth[1, 0] = 4.0
     words = "RigOpenError: cannot open the inprocess rig: no answer from the drum controller on in-process"
     out = bench_mod.result(case, truth, [], None, words, 1.0)
     assert out["not_run"] is None and out["outcome"] == "refused at open" and out["violations"] == []

@@ -1596,19 +1596,30 @@ static void mega_setup(void)
 static int opt_state_addr = -1;
 static int state_seen = -1;
 static double force_max_g = -1e300, act_max_mm = -1e300; /* the largest since the last TEL line */
+/* the actuator motor's position as the screw travel it turns (the screw's plus the coupling's wind-up: only the
+ * motor's real steps move it, a catch-up moves the screw and not it), the furthest since the last TEL line: the truth
+ * log's motor_mm, what the campaign's step-after-latch judge reads */
+static double motor_max_mm = -1e300;
+
+static double motor_mm(void)
+{
+    return (double)(act_steps + act_windup) / opt_act_steps_per_mm;
+}
 
 static void print_tel(void)
 {
-    double f = mega_force_g(), x = act_steps / opt_act_steps_per_mm;
+    double f = mega_force_g(), x = act_steps / opt_act_steps_per_mm, m = motor_mm();
     if (f > force_max_g) force_max_g = f;
     if (x > act_max_mm) act_max_mm = x;
+    if (m > motor_max_mm) motor_max_mm = m;
     printf("TEL t=%.6f cycle=%llu drum_steps=%lld drum_dir=%d act_steps=%lld act_mm=%.4f force_g=%.3f "
-           "index=%u en=%d steps_disabled=%llu drum_turn=%.5f ee_writes=%llu force_max_g=%.3f act_max_mm=%.4f\n",
+           "index=%u en=%d steps_disabled=%llu drum_turn=%.5f ee_writes=%llu force_max_g=%.3f act_max_mm=%.4f "
+           "motor_max_mm=%.4f\n",
            sim_s(), (unsigned long long)avr->cycle, (long long)drum_steps, drum_dir, (long long)act_steps, x, f,
            index_count, drivers_enabled(), (unsigned long long)steps_disabled,
            drum_turn_steps / (RIGCTL_DRUM_STEPS_PER_REV_DEF * opt_driver_microsteps), ee_writes, force_max_g,
-           act_max_mm);
-    force_max_g = act_max_mm = -1e300;
+           act_max_mm, motor_max_mm);
+    force_max_g = act_max_mm = motor_max_mm = -1e300;
 }
 
 static void mega_poll(void)
@@ -1634,9 +1645,10 @@ static void mega_poll(void)
     update_home();
     safety_poll();
     index_sensor_poll();
-    double f_now = mega_force_g(), x_now = act_steps / opt_act_steps_per_mm;
+    double f_now = mega_force_g(), x_now = act_steps / opt_act_steps_per_mm, m_now = motor_mm();
     if (f_now > force_max_g) force_max_g = f_now;
     if (x_now > act_max_mm) act_max_mm = x_now;
+    if (m_now > motor_max_mm) motor_max_mm = m_now;
     hx711_sample(f_now);
     if (avr->cycle >= hx_next_cycle) { /* end of a conversion period: DOUT low = ready */
         hx_next_cycle += hx711_period_cycles();
