@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
+import shutil
 import subprocess
 import sys
 from collections import Counter
@@ -285,3 +287,60 @@ def test_faults_narrows_the_draw_and_an_unknown_fault_is_a_usage_error(capsys):
         bench_mod.main(["--faults", "estop,nope", "--cases", "1"])
     assert exc.value.code == 2 and "unknown fault nope" in capsys.readouterr().err
     assert {draw_case(s, ["cell-gain", "home-switch"]).fault for s in range(30)} == {"cell-gain", "home-switch"}
+
+
+def _latch_while_pressing(library) -> tuple[np.ndarray, list]:
+    """The model rig (``library``: a build of controller.c) homed, pressing 400 g, then the load cell's zero jumps
+    +1,200 g (a knocked cell): FORCE_LIMIT latches while the force is held and the actuator backs off on the way the
+    loop proved (spec 2.11). The truth rows (:class:`ModelTruth`) and the latch spans, to 3 s after the latch."""
+    from types import SimpleNamespace
+
+    from rigctl.devices.wire import Command, DrumState as S, HoldingRegister as HR
+    from rigctl.simulation.campaign import ModelTruth
+    from rigctl.simulation.controller import MegaController
+    from rigctl.simulation.model import RigModel
+
+    ctl = MegaController(RigModel(seed=5), factory_calibrated=True, library=library)
+    truth = ModelTruth(SimpleNamespace(model=ctl.model, controller=ctl))
+
+    def run_until(done, what: str) -> None:
+        for _ in range(3000):
+            ctl.note_request()
+            ctl.step(10, render=False)
+            if done():
+                return
+        raise AssertionError(f"never {what}: {ctl.snapshot()}")
+
+    assert ctl.write_registers(6, HR.COMMAND, [int(Command.HOME)]) is None
+    run_until(lambda: ctl.state == S.IDLE, "IDLE after HOME")
+    for reg, value in ((HR.FORCE_SETPOINT_G, 400), (HR.COMMAND, Command.PRESS)):
+        assert ctl.write_registers(6, reg, [int(value)]) is None
+    run_until(lambda: ctl.state == S.FORCE_SETTLED, "FORCE_SETTLED")
+    ctl.model.loadcell_offset_g = 1200.0
+    run_until(lambda: ctl.state == S.FAULT, "the latch")
+    for _ in range(300):
+        ctl.note_request()
+        ctl.step(10, render=False)
+    return truth.array(), truth.latch_spans
+
+
+def test_the_judge_catches_a_controller_whose_back_off_steps_towards_the_sensor(tmp_path):
+    """A mutation of controller.c shown caught (issue 75): its back-off, once its way is proven, drives at full speed
+    towards the sensor instead of away (one sign in backoff_speed). On the model rig, a press held at 400 g and a
+    FORCE_LIMIT latch (the cell's zero jumps): controller.c as it is breaks no invariant, the back-off home judged on the
+    motor's own travel; the mutant's motor steps towards the sensor after the latch: step-after-latch."""
+    from rigctl import firmware
+    from rigctl.simulation import mega_c
+
+    truth, latches = _latch_while_pressing(None)
+    assert latches and check_invariants(truth, latches=latches) == []
+    assert truth[-1, 4] < 0.05  # backed off home
+    src = tmp_path / "arduino"
+    shutil.copytree(firmware.sources(), src, ignore=shutil.ignore_patterns("build"))
+    path = src / "mega_drum" / "controller.c"
+    mutant, n = re.subn(r"BACKOFF_PROOF_MM_S : -ACT_MAX_SPEED_MM_S;", "BACKOFF_PROOF_MM_S : ACT_MAX_SPEED_MM_S;",
+                        path.read_text())
+    assert n == 1
+    path.write_text(mutant)
+    truth, latches = _latch_while_pressing(mega_c.open_library(mega_c.build(src, tmp_path / "build")))
+    assert "step-after-latch" in [v.kind for v in check_invariants(truth, latches=latches)]
