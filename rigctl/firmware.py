@@ -58,12 +58,12 @@ BOOTLOADER_BAUD = 115200
 #: the contact stiffness range, EN read back; 1.5: the controller latches a reset away from home itself, RESET in
 #: FAULT_BITS_HI: docs/wire-protocol.md 2.5 and 2.7; 1.6: the reading's scale checked against the contact's stiffness
 #: stored with the calibration, LOADCELL_SCALE: 2.12; 1.7: the reading's zero judged off the contact at each press's
-#: start and the probe's steps, LOADCELL_ZERO: 2.13; 1.8: the zero's bounded follow at a press's start: 2.13): an
-#: image below it is never run,
+#: start and the probe's steps, LOADCELL_ZERO: 2.13; 1.8: the zero's bounded follow at a press's start: 2.13; 1.9: a
+#: press with no force rise past a located contact, CONTACT_MISSING: 2.13): an image below it is never run,
 #: ``--allow-firmware-mismatch`` or not
 #: (:func:`below_safety_floor`). A change to controller.c's safety rules raises the Mega's minor version and this
 #: floor with it (docs/firmware.md)
-MEGA_SAFETY_FLOOR: tuple[int, int] = (1, 8)
+MEGA_SAFETY_FLOOR: tuple[int, int] = (1, 9)
 #: hex digits of :func:`source_digest` a build gives the firmware as its BUILD_ID (the Uno's banner ``build=``, the
 #: Mega's 48-bit BUILD_ID_0 .. _2 input registers: docs/wire-protocol.md 1.4 and 2.2)
 BUILD_ID_DIGITS = 12

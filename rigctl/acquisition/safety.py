@@ -113,6 +113,12 @@ CAUSES: dict[str, tuple[str, str]] = {
                       "(recalibrate: it stores the new contact) or its zero moved: check the cell's mount, then the "
                       "HX711's DOUT and SCK wires and the cell's cable (E+, E-, A+, A-); latched again with nothing "
                       "on the sensor, the cell itself is failing; the start HOMEs and tares again" + _CRUSH),
+    "contact-missing": ("no force where the contact was",
+                        "the plate or sample removed or changed (mount it), the actuator's coupling (its set screws), "
+                        "the HX711's DOUT and SCK wires, the load cell's wires (A+, A-, E+, E-: an open lead reads no "
+                        "load), the lead screw binding or the motor losing steps, a coil pair swapped, a frozen HX711, "
+                        "the cell itself: check them in that order; the start HOMEs from where it stands and proves "
+                        "its way" + _CRUSH),
 }
 
 #: the parts each latch cause's remedy (:data:`CAUSES`) names, in the order it names them: most likely first
@@ -140,6 +146,8 @@ CAUSE_PARTS: dict[str, tuple[Part, ...]] = {
                        Part.LEAD_SCREW, Part.LOADCELL),
     "loadcell-zero": (Part.LOAD_ON_SENSOR, Part.PLATE, Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING,
                       Part.LOADCELL),
+    "contact-missing": (Part.PLATE, Part.COUPLING, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.LEAD_SCREW,
+                        Part.ACTUATOR_COILS, Part.HX711_CHIP, Part.LOADCELL),
 }
 
 #: the cause of each controller fault bit (the first that is set names the latch)
@@ -151,7 +159,7 @@ _FAULT_CAUSES: tuple[tuple[Fault, str], ...] = (
     (Fault.DRUM_SLIP, "stall"), (Fault.CONTACT_STIFFNESS, "contact-stiffness"), (Fault.HX711_LINE, "hx711-line"),
     (Fault.HX711_CADENCE, "hx711-cadence"), (Fault.HX711_STUCK, "hx711-stuck"), (Fault.POSITION_LIMIT, "position-limit"),
     (Fault.CONTACT_LOST, "contact-lost"), (Fault.RESET, "reset"), (Fault.LOADCELL_SCALE, "loadcell-scale"),
-    (Fault.LOADCELL_ZERO, "loadcell-zero"),
+    (Fault.LOADCELL_ZERO, "loadcell-zero"), (Fault.CONTACT_MISSING, "contact-missing"),
 )
 
 

@@ -90,6 +90,7 @@ class Fault(enum.IntFlag):
     RESET = 1 << 16  # FAULT_BITS_HI bit 0 (firmware 1.5)
     LOADCELL_SCALE = 1 << 17  # FAULT_BITS_HI bit 1 (firmware 1.6)
     LOADCELL_ZERO = 1 << 18  # FAULT_BITS_HI bit 2 (firmware 1.7)
+    CONTACT_MISSING = 1 << 19  # FAULT_BITS_HI bit 3 (firmware 1.9)
 
 
 #: the reading's scale check (docs/wire-protocol.md 2.12): the probe's stiffness over the one stored with the
@@ -201,7 +202,7 @@ _ACTUATOR_DIRECTION_PARTS = (Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL
 #: cause is fixed (:func:`fault_advice` says so). A fault bit added for a lying reading belongs here too
 CRUSH_FAULTS = (Fault.FORCE_LIMIT | Fault.LOADCELL_REVERSED | Fault.ACTUATOR_DIRECTION | Fault.CONTACT_STIFFNESS
                 | Fault.POSITION_LIMIT | Fault.HX711_STUCK | Fault.HX711_LINE | Fault.HX711_CADENCE | Fault.CONTACT_LOST
-                | Fault.LOADCELL_SCALE | Fault.LOADCELL_ZERO)
+                | Fault.LOADCELL_SCALE | Fault.LOADCELL_ZERO | Fault.CONTACT_MISSING)
 
 #: what :func:`fault_advice` adds to a crush-class fault
 CRUSH_NOTE = ("a crush-class fault: opening the rig never clears it; acknowledge it with a reason once the cause is "
@@ -387,6 +388,21 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "again at home; if this latches again with nothing on the sensor, the cell itself is failing: replace it and "
         "recalibrate.",
         (Part.LOAD_ON_SENSOR, Part.PLATE, Part.LOADCELL_ZERO, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.LOADCELL)),
+    Fault.CONTACT_MISSING: FaultWords(
+        "no force where the contact was",
+        "a press's approach went PROBE_LOCATED_MARGIN_UM (plus the probe's contact load's travel) past where the last "
+        "probe located the contact and the reading never showed it: a press commanded with no force rise",
+        "the press went past where its last probe found the contact and the load cell read no force: either the "
+        "reading is dead or the actuator did not get there. It stopped where it stands (its steps did not do what "
+        "they say, so a back-off could press as well). In the order a lab meets them: the plate or sample removed "
+        "or changed since the last press (mount it: the start's HOME forgets the old contact); the actuator's "
+        "coupling slipping (check its set screws); the HX711's DOUT and SCK wires; the load cell's wires reading no "
+        "load (an open bridge or excitation lead: check A+, A-, E+, E- at the HX711, and watch FORCE_G rise while you "
+        "press the cell by hand); the lead screw binding or the motor losing steps (check that it turns freely); a "
+        "coil pair swapped (the motor turns the wrong way); a frozen HX711; the cell itself broken. Then CLEAR_FAULT: "
+        "the start HOMEs from where it stands, creeping, and proves its way.",
+        (Part.PLATE, Part.COUPLING, Part.HX711_WIRES, Part.LOADCELL_WIRING, Part.LEAD_SCREW, Part.ACTUATOR_COILS,
+         Part.HX711_CHIP, Part.LOADCELL)),
 }
 
 

@@ -153,7 +153,7 @@ UNO_FIRMWARE_VERSION = (1, 0)
 # --------------------------------------------------------------------------------------------------------------
 DRUM_BAUD = 500_000
 DRUM_DEVICE_ID = 1
-MEGA_FIRMWARE_VERSION = (1, 8)
+MEGA_FIRMWARE_VERSION = (1, 9)
 
 
 class HoldingRegister(enum.IntEnum):

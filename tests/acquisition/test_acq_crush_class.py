@@ -10,12 +10,12 @@ from rigctl.core.drum import CRUSH_FAULTS, CRUSH_NOTE, Fault, fault_advice
 def test_every_crush_class_fault_is_named_so_and_no_other():
     """Each bit of CRUSH_FAULTS (FORCE_LIMIT, LOADCELL_REVERSED, ACTUATOR_DIRECTION, CONTACT_STIFFNESS, and firmware
     1.2's position channel and lying readings: POSITION_LIMIT, CONTACT_LOST, HX711_STUCK, HX711_LINE, HX711_CADENCE;
-    1.6's LOADCELL_SCALE; 1.7's LOADCELL_ZERO) says in its
+    1.6's LOADCELL_SCALE; 1.7's LOADCELL_ZERO; 1.9's CONTACT_MISSING) says in its
     advice and its latch that opening the rig never clears it; the other bits do not. CONTACT_STIFFNESS latches as
     itself (it was taken for an unexpected reset: the latch's default cause)."""
     assert {b.name for b in Fault if b and b in CRUSH_FAULTS} == {
         "FORCE_LIMIT", "LOADCELL_REVERSED", "ACTUATOR_DIRECTION", "CONTACT_STIFFNESS", "POSITION_LIMIT", "CONTACT_LOST",
-        "HX711_STUCK", "HX711_LINE", "HX711_CADENCE", "LOADCELL_SCALE", "LOADCELL_ZERO"}
+        "HX711_STUCK", "HX711_LINE", "HX711_CADENCE", "LOADCELL_SCALE", "LOADCELL_ZERO", "CONTACT_MISSING"}
     for bit in Fault:
         if not bit:
             continue

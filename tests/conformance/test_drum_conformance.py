@@ -180,8 +180,8 @@ def test_identity_and_power_up_defaults(controller, drum):
                                            for r in ADDRESSES]
     st = DrumStatus.from_registers(controller.power_up_inputs)
     # 1.2: the force path of issue 55 (spec 2.11); 1.3: what proves the actuator's way for a back-off (2.11)
-    assert st.firmware == wire.MEGA_FIRMWARE_VERSION == (1, 8)
-    assert controller.power_up_inputs[IR.FIRMWARE_VERSION] == 264
+    assert st.firmware == wire.MEGA_FIRMWARE_VERSION == (1, 9)
+    assert controller.power_up_inputs[IR.FIRMWARE_VERSION] == 265
     own = firmware.source_digest()[:12]
     words = [controller.power_up_inputs[r] for r in (IR.BUILD_ID_0, IR.BUILD_ID_1, IR.BUILD_ID_2)]
     assert words == [int(own[i:i + 4], 16) for i in (0, 4, 8)]  # most significant word first
@@ -264,7 +264,7 @@ def test_illegal_addresses(drum):
         drum.write_holding(min(wire.RESERVED_HOLDING), 1)
     assert drum.read_holding(min(wire.RESERVED_HOLDING)) == 0
     assert holding(drum) == before
-    assert drum.read_input(IR.FIRMWARE_VERSION) == 264  # still answering (firmware 1.8)
+    assert drum.read_input(IR.FIRMWARE_VERSION) == 265  # still answering (firmware 1.9)
 
 
 def test_setpoint_limits(drum):

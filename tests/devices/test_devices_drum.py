@@ -31,7 +31,7 @@ def test_every_input_register_read(drum, mega):
         time.sleep(0.01)
     regs = drum.read_inputs(0, wire.N_INPUT)
     assert [drum.read_input(reg) for reg in wire.RESERVED_INPUT] == [0] * len(wire.RESERVED_INPUT)
-    assert regs[IR.FIRMWARE_VERSION] == 264  # 1.8
+    assert regs[IR.FIRMWARE_VERSION] == 265  # 1.9
     assert regs[IR.STATE] == DrumState.IDLE  # homed by the fixture
     assert regs[IR.RESET_CAUSE] == wire.ResetCause.POWER_ON and regs[IR.BOOT_COUNT] == 0  # first boot of its EEPROM
     # homed and tared; the fixture's board is calibrated (a default calibration refuses PRESS, spec 2.11)

@@ -278,7 +278,7 @@ def test_read_status_gets_its_own_answer(drum_via_proxy, drum_proxy, mega):
     drum = drum_via_proxy
     _late_answer_then_a_lost_request(drum, drum_proxy)
     status = drum.read_status()  # not a bare IndexError on the one-register echo
-    assert status.state == DrumState.IDLE and status.firmware == (1, 8)
+    assert status.state == DrumState.IDLE and status.firmware == (1, 9)
     assert drum.stale_responses >= 1
 
 

@@ -66,7 +66,7 @@ def test_sim_prints_ports_and_mbpoll_reads_the_register_map(sim_process):
     assert res.returncode == 0, res.stderr
     inputs = parse_registers(res.stdout)
     assert len(inputs) == wire.N_INPUT
-    assert inputs[IR.FIRMWARE_VERSION + 1] == 264  # 1.8
+    assert inputs[IR.FIRMWARE_VERSION + 1] == 265  # 1.9
     assert inputs[IR.STATE + 1] == wire.DrumState.NOT_HOMED  # powered up, nobody homed it
 
 

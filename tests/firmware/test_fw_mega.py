@@ -99,7 +99,7 @@ def test_mbpoll_reads_and_writes_the_registers(hil_rig):
     out = mbpoll(hil_rig.drum_port, "-t", "3", "-r", "0", "-c", str(wire.N_INPUT), "-1")
     assert out.returncode == 0, out.stdout + out.stderr
     regs = registers(out.stdout)
-    assert regs[int(IR.FIRMWARE_VERSION)] == 264  # 1.8
+    assert regs[int(IR.FIRMWARE_VERSION)] == 265  # 1.9
     # BUILD_ID_0 .. _2 (spec 2.2): the id rigctl's build gave the image, most significant word first (mbpoll prints
     # uint16 registers as signed decimals)
     own = firmware.build_id()

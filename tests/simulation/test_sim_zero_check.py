@@ -98,3 +98,39 @@ def test_an_offset_during_the_approach_latches_at_the_probe(tmp_path, monkeypatc
             rig.press(307.0, timeout_s=60)
         assert rig.drum.read_status().faults & Fault.LOADCELL_ZERO
         assert max(row[1] for row in truth.rows[n0:]) < CONTACT_G
+
+
+@pytest.mark.parametrize("how", ["cell-dead", "coupling-slip", "steps-lost", "reversed-actuator"])
+def test_a_press_with_no_force_rise_within_its_travel_latches_contact_missing(tmp_path, monkeypatch, how):
+    """Issue 75 item 5's other half (spec 2.13, firmware 1.9): a trial locates the contact; then the cell reads
+    nothing (an excitation lead broken: 2 % of the signal left), or the coupling slips 50 % of the motor's travel, or
+    the motor loses 50 % of its steps, or a coil pair is swapped. The next press's approach passes the located
+    contact by PROBE_LOCATED_MARGIN_UM plus the probe's contact load's travel with no force read: CONTACT_MISSING,
+    standing where it latched (no longer homed). The true force stays under the probe's contact load plus
+    k x 0.3 mm (a wound coupling's catch-up included: it brings the screw to where the steps put the motor), and the
+    motor takes no step towards the sensor after the latch (the campaign's judge). CLEAR_FAULT: NOT_HOMED."""
+    from rigctl.simulation.campaign import check_invariants
+
+    k = 800.0
+    with _rig(tmp_path, monkeypatch, k, 80, seed=3) as rig:
+        truth = ModelTruth(rig.backend.engine)
+        rig.press(300.0, timeout_s=60)
+        rig.release()
+        rig.drum.clock.sleep(2.0)
+        if how == "cell-dead":
+            rig.backend.engine.model.loadcell_gain = 0.02
+        else:
+            rig.backend.inject_faults([FaultSpec(how, 0.0, value=None if how == "reversed-actuator" else 50.0)])
+        rig.drum.clock.sleep(0.5)
+        n0 = len(truth.rows)
+        with pytest.raises(LatchedFault, match="no force where the contact was"):
+            rig.press(300.0, timeout_s=60)
+        rig.drum.clock.sleep(3.0)
+        st = rig.drum.read_status()
+        assert st.faults == Fault.CONTACT_MISSING, st
+        rows = truth.rows[n0:]
+        assert max(row[1] for row in rows) < 50 + 0.3 * k + 60
+        (latch,) = truth.latch_spans
+        assert check_invariants(truth.array(), latches=[latch]) == []
+        rig.drum.clear_fault()
+        assert rig.drum.read_status().state == wire.DrumState.NOT_HOMED

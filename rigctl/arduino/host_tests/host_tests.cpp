@@ -1054,6 +1054,45 @@ static void test_zero_check()
     std::printf("zero check: ok\n");
 }
 
+// spec 2.13 (issue 75 item 5): a press commanded with no force rise within its travel. The contact located by the last
+// probe; the cell then reads nothing (a broken cell or excitation lead): the next press's approach goes past the
+// located zero-force point by PROBE_LOCATED_MARGIN_UM plus the probe's contact load's travel, latches CONTACT_MISSING
+// and stands where it latched, no longer homed (its steps did not do what they say: a back-off could press); the true
+// force stays under the probe's contact load plus k x 0.3 mm. CLEAR_FAULT leaves FAULT for NOT_HOMED (the start's
+// HOME creeps). Without the check the approach ran on to the end of travel (ACTUATOR_TRAVEL, 20 mm: 17 kg at 1 kg/mm)
+static void test_contact_missing()
+{
+    const double ks[] = {250, 1000, 2000}; // (5 kg/mm: CONTACT_STIFFNESS at this plant's default force loop)
+    for (double k : ks) {
+        ctl_t c;
+        Plant p;
+        uint32_t now = 0;
+        p.sinc4 = true;
+        p.k = k;
+        ctl_init(&c, 0, 0);
+        run_ms(c, p, now, 100);
+        home(c, p, now);
+        press_settled(c, p, now, 300);
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_STOP));
+        run_ms(c, p, now, 3000);
+        CHECK(c.state == RIGCTL_STATE_IDLE && c.contact_located);
+        p.counts_per_g = 0.0; // the cell reads no load (its noise only)
+        p.peak_g = 0;
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
+        for (int i = 0; i < 1000 && c.state == RIGCTL_STATE_SEEKING_FORCE; i++) run_ms(c, p, now, 10);
+        double x_latch = p.x_mm;
+        run_ms(c, p, now, 3000);
+        std::printf("contact missing: %.0f g/mm: faults 0x%lx (hi %u), peak %.0f g, x %.3f mm (%.3f at the latch), "
+                    "homed %u\n", k, (unsigned long)c.faults, ctl_read_input(&c, RIGCTL_IREG_FAULT_BITS_HI), p.peak_g,
+                    p.x_mm, x_latch, c.homed);
+        CHECK(c.faults == RIGCTL_FAULT_CONTACT_MISSING && ctl_read_input(&c, RIGCTL_IREG_FAULT_BITS_HI) == 8);
+        CHECK(p.peak_g < 50 + 0.3 * k + 0.01 * k + 20); // the bound plus a control period's travel
+        CHECK(p.x_mm == x_latch && !c.homed);            // it stood where it latched
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT) && c.state == RIGCTL_STATE_NOT_HOMED);
+    }
+    std::printf("contact missing: ok\n");
+}
+
 int main()
 {
     test_crc();
@@ -1068,6 +1107,7 @@ int main()
     test_stiffness();
     test_scale_check();
     test_zero_check();
+    test_contact_missing();
     std::printf("%d checks, %d failures\n", checks, failures);
     return failures ? 1 : 0;
 }

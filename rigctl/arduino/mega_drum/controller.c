@@ -236,7 +236,8 @@ static void press_dir_forget(ctl_t *c)
  * a latch means a back-off that proved its way or a HOME that proved the switch; that HOME releases the ratchet */
 #define RATCHET_FAULTS                                                                                            \
     (RIGCTL_FAULT_FORCE_LIMIT | RIGCTL_FAULT_POSITION_LIMIT | RIGCTL_FAULT_ACTUATOR_DIRECTION |                   \
-     RIGCTL_FAULT_CONTACT_LOST | RIGCTL_FAULT_CONTACT_STIFFNESS | RIGCTL_FAULT_LOADCELL_REVERSED)
+     RIGCTL_FAULT_CONTACT_LOST | RIGCTL_FAULT_CONTACT_STIFFNESS | RIGCTL_FAULT_LOADCELL_REVERSED |               \
+     RIGCTL_FAULT_CONTACT_MISSING)
 
 /* ---- the load ratchet (spec 2.11, issue 75): the ratchet guard's step count is lost at a reset (the count restarts
  * where the actuator stands), so a switch stuck closed let every reset's HOME leave it creeping until the load watch
@@ -475,6 +476,23 @@ static float contact_g(const ctl_t *c)
     return half < contact ? half : contact;
 }
 
+/* a press commanded with no force rise within its travel (spec 2.13, issue 75 item 5): the approach to a contact an
+ * earlier probe located has gone PROBE_LOCATED_MARGIN_UM past its zero-force point, plus the travel that presses the
+ * probe's contact load at its stiffness, and the reading has not shown the contact (it reads under PRESS_DIR_G: a
+ * load of that much is the contact found late, a slipping coupling or the 10 SPS reading's lag, which the probe takes
+ * on from here): the cell reads no load (a broken cell or excitation lead), the screw did not go where its steps say
+ * (a slipping coupling, lost steps, a reversed motor) or the plate is gone. The bound is the fast approach's own
+ * margin on the other side of the contact; the true force there is at most the probe's contact load plus
+ * k x PROBE_LOCATED_MARGIN_UM (1,550 g at 5 kg/mm) on a cell that reads nothing, and a wound-up coupling that
+ * catches up brings the screw no further than where the steps put the motor */
+static uint8_t contact_missing(const ctl_t *c)
+{
+    float past = (float)RIGCTL_PROBE_LOCATED_MARGIN_UM * 1e-3f * (float)c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
+    if (!c->contact_located || c->probe_phase != PROBE_APPROACH || c->located_k_g_per_step <= 0.0f) return 0;
+    if ((c->force_gf < 0.0f ? -c->force_gf : c->force_gf) >= (float)RIGCTL_PRESS_DIR_G) return 0;
+    return (float)c->act_pos_steps > c->located_x0_steps + past + contact_g(c) / c->located_k_g_per_step;
+}
+
 /* the reading's zero off the contact (spec 2.13, issue 75 item 5): a force that moves with no step. The tare is taken
  * at home; a press that starts there at rest (as the warm-boot record's "at home" says) first judges its reading,
  * settled (HX711_RATE_PERIODS + 1 readings with the actuator still), against it: off by more than PRESS_DIR_G (the
@@ -562,6 +580,7 @@ static void probe_reading(ctl_t *c, float f)
             c->contact_valid = 1;
             c->contact_located = 1;
             c->located_x0_steps = c->contact_x0_steps;
+            c->located_k_g_per_step = c->contact_k_g_per_step;
             /* the probe's measuring step(s) went forward and the settled load rose with them: the way is proven for
              * the rest of this press (spec 2.11), until the release, HOME, a fault or the watch's evidence against */
             c->press_dir_held = f - c->probe_f1_gf >= (float)RIGCTL_PRESS_DIR_G;
@@ -987,6 +1006,12 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
             /* the two channels disagree: the reading lies (the position bounds the force where it stands) or
              * the actuator does not go where its steps say (a reversed motor: a back-off would press) */
             stop_unproven(c, RIGCTL_FAULT_POSITION_LIMIT);
+            break;
+        }
+        /* no force where the contact was (2.13): it stands where it latched, its way unproven (the steps did not do
+         * what they say: a back-off may press too); the start's HOME creeps and proves the way */
+        if (contact_missing(c)) {
+            stop_unproven(c, RIGCTL_FAULT_CONTACT_MISSING);
             break;
         }
         /* HOME's switch proof is void once the switch reads closed with the count HOME_PROOF_MM out (2.11): the

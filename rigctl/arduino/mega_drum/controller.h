@@ -78,6 +78,7 @@ typedef struct {
      * a fault or a reset: the next press approaches it fast up to PROBE_LOCATED_MARGIN_UM before it, then probes */
     uint8_t contact_located;
     float located_x0_steps;
+    float located_k_g_per_step; /* its stiffness (2.13: how far past it the approach may go reading no contact) */
     /* the reading's plausibility (spec 2.11) */
     int32_t prev_raw;
     uint8_t same_raw;          /* readings in a row with the same raw value */
