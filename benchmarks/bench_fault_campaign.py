@@ -39,8 +39,11 @@ Usage: python benchmarks/bench_fault_campaign.py --cases N --seed S [--rig model
 
 The JSON: ``cases``, ``violations`` (each with its ``seed``: ``--replay SEED`` runs that case again), ``not_run``
 (cases that did not run) and ``not_run_cases`` (their seeds and why), ``results`` (one object a case: ``seed``,
-``fault``, ``value``, ``moment``, ``outcome``, ``true_force_max_g``), ``worst_true_force_g`` (and ``worst_seed``),
-``outcomes`` (how the scripts ended), ``faults`` (cases per fault, with the worst true force of each),
+``fault``, ``value``, ``moment``, ``outcome``, ``latched``: the controller's fault bits at the run's end by name,
+``true_force_max_g``), ``worst_true_force_g`` (and ``worst_seed``), ``outcomes`` (how the scripts ended), ``faults``
+(cases per fault, with the worst true force of each and how many ended with each fault bit latched: ``none``, or
+``unknown`` where the status could not be read; a drawn fault that ended with only CONTACT_STIFFNESS latched at the
+first probe may never have acted),
 ``sim_s_per_wall_s`` (simulated seconds per wall second), ``cases_per_minute``, ``cpu_s``.
 Exits 1 if a case broke an invariant or did not run, 2 for a usage error (a fault the rig cannot model).
 """
@@ -125,6 +128,8 @@ class Script:
         self.rig, self.case, self.t0 = rig, case, clock_t0
         self.trials: list[tuple[float, float, float]] = []
         self.outcome = "completed"
+        #: the controller's fault bits at the end of the run, by name ([]: none; None: the status could not be read)
+        self.latched: list[str] | None = None
 
     def now(self) -> float:
         return float(self.rig.drum.clock.now()) - self.t0
@@ -178,6 +183,10 @@ class Script:
             self.hold(AFTER_S / 2)
         except Exception:  # noqa: BLE001
             pass
+        try:
+            self.latched = [str(b.name) for b in wire.Fault if b and b in self.rig.drum.read_status().faults]
+        except Exception:  # noqa: BLE001 - the link is the case's fault: unknown
+            self.latched = None
 
 
 #: rounds of "do what the advice says, acknowledge, start" an operator makes after a latch (``--walk-advice``)
@@ -459,7 +468,7 @@ def result(case: Case, truth: np.ndarray, latches: list[tuple[float, float | Non
     return {"seed": case.seed, "case": case.describe(), "fault": case.fault, "value": case.value,
             "moment": case.moment, "not_run": not_run,
             "outcome": "not_run" if not_run else "refused at open" if refused else (script.outcome if script else "?"),
-            "trials_recorded": len(trials), "latches": latches,
+            "trials_recorded": len(trials), "latches": latches, "latched": script.latched if script else None,
             "true_force_max_g": round(float(truth[:, 1].max()), 1) if len(truth) else 0.0,
             "sim_s": round(float(truth[-1, 0] - truth[0, 0]), 3) if len(truth) else 0.0, "wall_s": round(wall_s, 3),
             "violations": [{"kind": v.kind, "time_s": round(v.time_s, 3), "detail": v.detail} for v in violations]}
@@ -498,12 +507,14 @@ def campaign(n: int, seed: int, rig: str, jobs: int = 1, paced: bool = False, fa
     cpu1 = os.times()
     results.sort(key=lambda r: r["seed"])
     worst = max(results, key=lambda r: r["true_force_max_g"]) if results else None
-    per_fault: dict[str, dict[str, float]] = {}
+    per_fault: dict[str, dict[str, Any]] = {}
     outcomes: dict[str, int] = {}
     for r in results:
-        f = per_fault.setdefault(r["fault"], {"cases": 0, "worst_true_force_g": 0.0})
+        f = per_fault.setdefault(r["fault"], {"cases": 0, "worst_true_force_g": 0.0, "latched": {}})
         f["cases"] += 1
         f["worst_true_force_g"] = max(f["worst_true_force_g"], r["true_force_max_g"])
+        for name in r.get("latched") or ["none" if r.get("latched") == [] else "unknown"]:
+            f["latched"][name] = f["latched"].get(name, 0) + 1
         outcomes[r["outcome"]] = outcomes.get(r["outcome"], 0) + 1
     sim = sum(r["sim_s"] for r in results)
     not_run = [{"seed": r["seed"], "case": r["case"], "why": r["not_run"]} for r in results if r["not_run"]]
@@ -511,7 +522,7 @@ def campaign(n: int, seed: int, rig: str, jobs: int = 1, paced: bool = False, fa
             "as_built": as_built, "faults_drawn_from": sorted(faults or CAMPAIGN_FAULTS),
             "violations": [{"seed": r["seed"], "case": r["case"], **v} for r in results for v in r["violations"]],
             "not_run": len(not_run), "not_run_cases": not_run,
-            "results": [{k: r[k] for k in ("seed", "fault", "value", "moment", "outcome", "true_force_max_g",
+            "results": [{k: r[k] for k in ("seed", "fault", "value", "moment", "outcome", "latched", "true_force_max_g",
                                             "advice_walk", "advice_miswired") if k in r} for r in results],
             "worst_true_force_g": worst["true_force_max_g"] if worst else 0.0,
             "worst_seed": worst["seed"] if worst else None, "outcomes": outcomes, "faults": per_fault,
