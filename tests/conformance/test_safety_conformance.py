@@ -162,8 +162,12 @@ def test_reversed_load_cell_faults_at_once_and_calibrates_negative(drum, control
     drum.set_loadcell_scale(-counts_per_g)
     assert drum.read_holding(HR.LOADCELL_SCALE_X100) == 0  # the 16-bit view cannot show a negative scale
     # TARE is taken only at home with the switch closed: released() is satisfied 0.05 mm short of it (a loaded run sent
-    # TARE in those last steps of the retraction and the controller refused it, as the firmware would)
-    poll(drum, lambda s: s.state in (S.IDLE, S.NOT_HOMED) and s.home_switch, 10, "at rest at home")
+    # TARE in those last steps of the retraction and the controller refused it, as the firmware would), and a back-off
+    # ends where its count reads home, which may be a fraction of a step short of the switch (a loaded run's model
+    # rig: IDLE at 0.0 mm, the switch open, for good). HOME closes it (and tares), as an operator would
+    poll(drum, lambda s: s.state in (S.IDLE, S.NOT_HOMED) and s.actuator_mm <= 0.05, 10, "back at home")
+    drum.home()
+    poll(drum, lambda s: s.state == S.IDLE and s.home_switch, 30, "at rest at home")
     drum.tare()
     settle(drum, 300)
     assert abs(controller.load_g() - 300) <= 2 * TOL
