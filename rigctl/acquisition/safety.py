@@ -48,7 +48,7 @@ from rigctl.core.drum import (
 from rigctl.core.parts import Part
 
 __all__ = ["Latch", "Acknowledgement", "ConfigResolution", "LatchedFault", "DrumStall", "SafetyLatch", "SafetyLog", "latch_for",
-           "latch_from_faults", "CAUSES", "CAUSE_PARTS", "operator_name", "safety_log_path"]
+           "latch_from_faults", "CAUSES", "CAUSE_PARTS", "FAULT_CAUSES", "operator_name", "safety_log_path"]
 
 log = logging.getLogger(__name__)
 
@@ -151,7 +151,7 @@ CAUSE_PARTS: dict[str, tuple[Part, ...]] = {
 }
 
 #: the cause of each controller fault bit (the first that is set names the latch)
-_FAULT_CAUSES: tuple[tuple[Fault, str], ...] = (
+FAULT_CAUSES: tuple[tuple[Fault, str], ...] = (
     (Fault.ESTOP, "estop"), (Fault.FORCE_LIMIT, "force-limit"), (Fault.LOADCELL_REVERSED, "reversed-cell"),
     (Fault.WATCHDOG, "watchdog"), (Fault.LOADCELL_TIMEOUT, "loadcell-timeout"),
     (Fault.ACTUATOR_DIRECTION, "actuator-direction"), (Fault.ACTUATOR_TRAVEL, "actuator-travel"),
@@ -268,9 +268,9 @@ class DrumStall(DrumError):
 
 
 def latch_from_faults(faults: int, detail: str = "") -> Latch:
-    """The latch of the controller's fault bits ``faults`` (its cause: the first set bit of :data:`_FAULT_CAUSES`)."""
+    """The latch of the controller's fault bits ``faults`` (its cause: the first set bit of :data:`FAULT_CAUSES`)."""
     bits = Fault(int(faults))
-    causes = [c for bit, c in _FAULT_CAUSES if bit in bits] or ["reset"]
+    causes = [c for bit, c in FAULT_CAUSES if bit in bits] or ["reset"]
     words = detail or (FAULT_WORDS[bits].meaning if bits in FAULT_WORDS else describe_faults(int(bits)))
     return Latch(causes[0], words, int(bits), also=tuple(causes[1:]))
 

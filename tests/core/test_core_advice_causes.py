@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.acquisition.safety import _FAULT_CAUSES, CAUSE_PARTS, CAUSES
+from rigctl.acquisition.safety import CAUSE_PARTS, CAUSES, FAULT_CAUSES
 from rigctl.core.drum import ACTUATOR_DIRECTION_CAUSES, FAULT_WORDS, Fault
 from rigctl.core.parts import ADVICE_ORDER_EXCEPTIONS, PARTS, Part, less_likely_first, named_at
 from rigctl.simulation.campaign import CAMPAIGN_FAULTS, FAULT_PARTS
@@ -36,7 +36,7 @@ def test_every_advice_has_its_parts():
 def test_both_faces_send_the_operator_to_the_same_parts():
     """A fault bit's words (the CLI, the doctor: fault_advice) and its latch cause's remedy (the GUI's fault dialog)
     name the same parts in the same order."""
-    for bit, cause in _FAULT_CAUSES:
+    for bit, cause in FAULT_CAUSES:
         assert FAULT_WORDS[bit].causes == CAUSE_PARTS[cause], (bit.name, cause)
 
 
