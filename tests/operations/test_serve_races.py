@@ -58,7 +58,9 @@ def _flip(data: Path, outside: Path, stop: threading.Event, flips: list[int]) ->
             i += 1
             continue
         os.rename(aside, sub)
-        time.sleep(0.008 + 0.004 * (i % 2))  # (longer than the link's: most runs start, the others are refused)
+        # longer than the link's: most runs start, the others are refused (8-12 ms: a CI run beside two busy loops had
+        # all six refused, the scheduler's lateness stretching the link's window as much as this one)
+        time.sleep(0.02 + 0.004 * (i % 2))
         i += 1
     flips.append(i)
 
