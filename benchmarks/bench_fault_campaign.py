@@ -475,7 +475,7 @@ def result(case: Case, truth: np.ndarray, latches: list[tuple[float, float | Non
 
 
 def run_case(seed: int, rig: str, folder: Path, truth_log: Path | None = None, paced: bool = False,
-             faults: list[str] | None = None, as_built: bool = True, draw: str = "v2",
+             faults: list[str] | None = None, as_built: bool = True, draw: str = "v3",
              walk_advice: bool = False) -> dict[str, Any]:
     """The case of ``seed`` (drawn from ``faults``, default CAMPAIGN_FAULTS: the same on every rig; ``draw``: see
     rigctl.simulation.campaign.draw_case) on ``rig``; ``walk_advice`` (model rig): the advice followed after it."""
@@ -486,23 +486,23 @@ def run_case(seed: int, rig: str, folder: Path, truth_log: Path | None = None, p
 
 
 def _run_chunk(seeds: list[int], rig: str, paced: bool = False, faults: list[str] | None = None,
-               as_built: bool = True, walk_advice: bool = False) -> list[dict[str, Any]]:
+               as_built: bool = True, walk_advice: bool = False, draw: str = "v3") -> list[dict[str, Any]]:
     with tempfile.TemporaryDirectory(prefix="rigctl-campaign-") as tmp:
-        return [run_case(s, rig, Path(tmp), paced=paced, faults=faults, as_built=as_built, walk_advice=walk_advice)
-                for s in seeds]
+        return [run_case(s, rig, Path(tmp), paced=paced, faults=faults, as_built=as_built, draw=draw,
+                         walk_advice=walk_advice) for s in seeds]
 
 
 def campaign(n: int, seed: int, rig: str, jobs: int = 1, paced: bool = False, faults: list[str] | None = None,
-             as_built: bool = True, walk_advice: bool = False) -> dict[str, Any]:
+             as_built: bool = True, walk_advice: bool = False, draw: str = "v3") -> dict[str, Any]:
     seeds = list(range(seed, seed + n))
     t_wall, cpu0 = time.perf_counter(), os.times()
     if jobs > 1:
         chunks = [seeds[i::jobs] for i in range(jobs)]
         with ProcessPoolExecutor(jobs) as pool:
             results = [r for part in pool.map(_run_chunk, chunks, [rig] * jobs, [paced] * jobs, [faults] * jobs,
-                                              [as_built] * jobs, [walk_advice] * jobs) for r in part]
+                                              [as_built] * jobs, [walk_advice] * jobs, [draw] * jobs) for r in part]
     else:
-        results = _run_chunk(seeds, rig, paced, faults, as_built, walk_advice)
+        results = _run_chunk(seeds, rig, paced, faults, as_built, walk_advice, draw)
     wall = time.perf_counter() - t_wall
     cpu1 = os.times()
     results.sort(key=lambda r: r["seed"])
@@ -519,7 +519,7 @@ def campaign(n: int, seed: int, rig: str, jobs: int = 1, paced: bool = False, fa
     sim = sum(r["sim_s"] for r in results)
     not_run = [{"seed": r["seed"], "case": r["case"], "why": r["not_run"]} for r in results if r["not_run"]]
     return {"rig": rig, "seed": seed, "cases": len(results), "jobs": jobs, "paced": paced if rig == "hil" else None,
-            "as_built": as_built, "faults_drawn_from": sorted(faults or CAMPAIGN_FAULTS),
+            "as_built": as_built, "draw": draw, "faults_drawn_from": sorted(faults or CAMPAIGN_FAULTS),
             "violations": [{"seed": r["seed"], "case": r["case"], **v} for r in results for v in r["violations"]],
             "not_run": len(not_run), "not_run_cases": not_run,
             "results": [{k: r[k] for k in ("seed", "fault", "value", "moment", "outcome", "latched", "true_force_max_g",
@@ -543,9 +543,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--faults", default=None, metavar="NAME,...",
                     help="draw only these faults (names of rigctl.core.faults.FAULTS; default the campaign's list)")
-    ap.add_argument("--draw", choices=("v1", "v2"), default="v2",
+    ap.add_argument("--draw", choices=("v1", "v2", "v3"), default="v3",
                     help="v1: the campaign's draw before issue 75 (15 faults, plates of 0.25-6 kg/mm): the seeds of "
-                         "the cases fixed then (tests/simulation/test_sim_fault_campaign.py FIXED)")
+                         "the cases fixed then (tests/simulation/test_sim_fault_campaign.py FIXED); v2: the rig's own "
+                         "contact up to 5 kg/mm, stiffer than its force loop holds in a fifth of the cases (the "
+                         "campaigns until firmware 1.9); v3 (default): the rig's contact within what its loop holds")
     ap.add_argument("--firmware-only", action="store_true",
                     help="no driver stall (the rig as built has one: --as-built, the default): the firmware alone")
     ap.add_argument("--walk-advice", action="store_true",
@@ -576,7 +578,8 @@ def main(argv: list[str] | None = None) -> int:
                            args.walk_advice)
         print(json.dumps(out, indent=1))
         return 1 if out["violations"] or out["not_run"] else 0
-    out = campaign(args.cases, args.seed, args.rig, args.jobs, args.paced, faults, as_built, args.walk_advice)
+    out = campaign(args.cases, args.seed, args.rig, args.jobs, args.paced, faults, as_built, args.walk_advice,
+                   args.draw)
     if args.json:
         print(json.dumps(out, indent=1))
     else:

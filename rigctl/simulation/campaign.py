@@ -5,9 +5,11 @@ A case (:class:`Case`, :func:`draw_case`) is one seed's draw: one fault of :data
 value for the valued ones: a plate swap's stiffness, a slip, a taxel impedance), the moment of the run it starts in
 (:data:`MOMENTS`: wired so from power-on, or during the HOME, the first press's contact probe, a later press's
 approach, the settled force, a running trial, the retract, the pause between trials) and where in that moment
-(``moment_fraction``), how long it lasts, the rig's contact stiffness (0.25-5 kg/mm, log-uniform: the whole range a
-rig config accepts), its HX711's rate (10 or 80 SPS) and the trials' forces (250-1500 g). The same seed draws the same case on every machine
-(numpy's PCG64), so a violation is replayed from its seed.
+(``moment_fraction``), how long it lasts, the rig's contact stiffness (log-uniform from 0.25 kg/mm to
+:data:`LOOP_STIFFNESS_SHARE` of what its force loop holds at the drawn rate, draw v3; a plate swap, the
+``contact-stiffness`` fault, over the whole range a rig config accepts, 0.1-5 kg/mm), its HX711's rate (10 or 80
+SPS) and the trials' forces (250-1500 g). The same seed draws the same case on every machine (numpy's PCG64), so a
+violation is replayed from its seed.
 
 The invariants (:func:`check_invariants`) are judged on the truth log's columns :data:`COLUMNS` (of
 :data:`rigctl.simulation.truth.TRUTH_COLUMNS`: the physical model's contact force and actuator position, not what
@@ -45,7 +47,7 @@ from rigctl.devices import wire
 
 __all__ = ["CAMPAIGN_FAULTS", "CAMPAIGN_FAULTS_V1", "Case", "BrokenPart", "FAULT_PARTS",
            "COLUMNS", "read_truth_log", "MOMENTS", "FORCE_BOUND_G", "CONTACT_G", "LATCH_STEP_MM", "LATCH_GRACE_S",
-           "LATCH_PROOF_MM", "draw_case",
+           "LATCH_PROOF_MM", "LOOP_STIFFNESS_SHARE", "loop_stiffness_max_g_per_mm", "draw_case",
            "check_invariants", "ModelTruth", "Violation"]
 
 #: the truth log's columns the invariants judge, in this order
@@ -127,6 +129,23 @@ FAULT_PARTS: dict[str, BrokenPart] = {
 #: swaps' stiffness (0.25-6 kg/mm); the seeds of the cases fixed then draw their old cases from it (``draw="v1"``)
 #: the rig's own contact drawn up to the stiffest a rig config accepts (v1: up to 6 kg/mm, from before that bound)
 _STIFFNESS_MAX = wire.CONTACT_STIFFNESS_MAX_G_PER_MM
+#: v3: the rig's own contact drawn up to this share of what its force loop holds at the drawn HX711 rate with the
+#: default gains (:func:`loop_stiffness_max_g_per_mm`; the controller measures the HX711's period, a few % off the
+#: nominal, and the probe's stiffness a few % off the contact's): a stiffer rig latches CONTACT_STIFFNESS at its first
+#: probe, before its drawn fault can act (v2 drew up to 5 kg/mm: 20 % of 4,000 model cases ended so, docs/safety.md).
+#: Stiffer contacts are the ``contact-stiffness`` fault's, over a rig config's whole range
+LOOP_STIFFNESS_SHARE = 0.8
+
+
+def loop_stiffness_max_g_per_mm(hx711_rate_sps: int) -> float:
+    """The stiffest contact the force loop holds with its default gains at ``hx711_rate_sps`` (10 or 80), g/mm:
+    LOOP_PHASE_RAD / (Kp x HX711_DELAY_PERIODS x the HX711's nominal period) (docs/wire-protocol.md 2.10; the
+    controller's ``ctl_stiffness_max``, which uses the period it measures). KeyError for another rate."""
+    from rigctl.devices.drum import default_force_loop
+
+    loop = default_force_loop(hx711_rate_sps)
+    kp = {80: loop.kp_80sps_mm_s_per_g, 10: loop.kp_10sps_mm_s_per_g}[int(hx711_rate_sps)]
+    return wire.LOOP_PHASE_RAD / (kp * wire.HX711_DELAY_PERIODS / float(hx711_rate_sps))
 _VALUE_DRAWS_V1 = {**_VALUE_DRAWS, "contact-stiffness": (250.0, 6000.0, True)}
 CAMPAIGN_FAULTS_V1: tuple[str, ...] = (
     "contact-stiffness", "eeprom-corrupt", "estop", "host-silence", "hx711-10sps", "hx711-frozen", "hx711-sck-broken",
@@ -168,15 +187,19 @@ class Case:
         return out
 
 
-def draw_case(seed: int, faults: Sequence[str] | None = None, draw: str = "v2") -> Case:
+def draw_case(seed: int, faults: Sequence[str] | None = None, draw: str = "v3") -> Case:
     """The case of ``seed`` (an int >= 0), its fault from ``faults`` (default :data:`CAMPAIGN_FAULTS`, the same on
     every rig; ``--faults`` narrows it): the one at ``seed`` modulo their number (sorted), so consecutive seeds draw
     every fault in turn; its value, moment, rig and forces drawn from the seed; ``draw="v1"``: the draw of before issue
     75 (the fault drawn at random too; default faults
-    :data:`CAMPAIGN_FAULTS_V1`, plate swaps of 0.25-6 kg/mm), which the cases fixed then are replayed with. Raises
-    ValueError for an empty ``faults`` or an unknown ``draw``."""
-    if draw not in ("v1", "v2"):
-        raise ValueError(f"draw must be v1 or v2, got {draw!r}")
+    :data:`CAMPAIGN_FAULTS_V1`, plate swaps of 0.25-6 kg/mm), which the cases fixed then are replayed with; ``"v2"``:
+    the rig's own contact drawn over a rig config's whole range (0.25-5 kg/mm), above what its force loop holds in a
+    fifth of the cases; ``"v3"`` (the default): the same seeds, the rig's own contact within
+    :data:`LOOP_STIFFNESS_SHARE` of what its force loop holds at the drawn rate (the plate swaps of
+    ``contact-stiffness`` still over the whole range). Raises ValueError for an empty ``faults`` or an unknown
+    ``draw``."""
+    if draw not in ("v1", "v2", "v3"):
+        raise ValueError(f"draw must be v1, v2 or v3, got {draw!r}")
     value_draws = _VALUE_DRAWS_V1 if draw == "v1" else _VALUE_DRAWS
     names = sorted(faults if faults is not None else CAMPAIGN_FAULTS_V1 if draw == "v1" else CAMPAIGN_FAULTS)
     if not names:
@@ -198,8 +221,11 @@ def draw_case(seed: int, faults: Sequence[str] | None = None, draw: str = "v2") 
     duration = math.inf if rng.uniform() < 0.5 else float(rng.uniform(0.2, 4.0))
     if fault in INSTANT_FAULTS:
         duration = 0.0
-    stiffness = float(math.exp(rng.uniform(math.log(250.0), math.log(6000.0 if draw == "v1" else _STIFFNESS_MAX))))
+    share = float(rng.uniform())  # where in the rig's range its contact lies (log-uniform): one draw in every version
     rate = int(rng.choice([10, 80]))
+    high = {"v1": 6000.0, "v2": _STIFFNESS_MAX}.get(draw) or min(
+        _STIFFNESS_MAX, LOOP_STIFFNESS_SHARE * loop_stiffness_max_g_per_mm(rate))
+    stiffness = float(math.exp(math.log(250.0) + share * (math.log(high) - math.log(250.0))))
     forces = (float(rng.uniform(250.0, 1500.0)), float(rng.uniform(250.0, 1500.0)))
     speed = float(rng.choice([40.0, 80.0, 120.0]))
     return Case(int(seed), fault, value, moment, fraction, duration, round(stiffness, 1), rate,
