@@ -389,6 +389,8 @@ def test_ramp_profile_is_linear_in_controller_time(drum):
         t_early = ((s.heartbeat - hb_after) % 65536 - 1) * 10
         lo = 40 + 80 * min(1.0, max(0.0, t_early / 1000))
         hi = 40 + 80 * min(1.0, max(0.0, t_late / 1000))
+        if s.heartbeat == hb_after:  # no control step since RUN's answer: the target moves from the next one (a
+            lo = 0.0  # loaded CI read 0.0 at the very heartbeat of RUN: 1350, 1350, 1350)
         assert lo - 0.15 <= s.speed_target_mm_s <= hi + 0.15, (s.heartbeat, hb_before, hb_after, s.speed_target_mm_s)
     st = drum.wait_speed_steady(timeout_s=5)
     assert st.speed_target_mm_s == 120 and abs(st.speed_mm_s - 120) <= 0.5

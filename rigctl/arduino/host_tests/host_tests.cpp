@@ -1090,6 +1090,29 @@ static void test_contact_missing()
         CHECK(p.x_mm == x_latch && !c.homed);            // it stood where it latched
         CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT) && c.state == RIGCTL_STATE_NOT_HOMED);
     }
+    // a probe that measured no stiffness arms nothing: a press at 0 g (the contact "found" at 0 g where the actuator
+    // stood, at home) located a contact of noise (38 g/mm in the conformance suite), and the next press at a force
+    // latched CONTACT_MISSING on the way to the real one; only a probe whose steps pressed half of PROBE_REFINE_G or
+    // more bounds the next approach
+    {
+        ctl_t c;
+        Plant p;
+        uint32_t now = 0;
+        p.sinc4 = true;
+        p.k = 1000;
+        ctl_init(&c, 0, 0);
+        run_ms(c, p, now, 100);
+        home(c, p, now);
+        CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 0) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
+        run_ms(c, p, now, 3000);
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_STOP));
+        run_ms(c, p, now, 3000);
+        std::printf("contact missing after a press at 0 g: located %u, k %.3f g/step, state %u\n", c.contact_located,
+                    c.located_k_g_per_step, c.state);
+        CHECK(c.state == RIGCTL_STATE_IDLE && c.located_k_g_per_step == 0.0f);
+        press_settled(c, p, now, 1000);
+        CHECK(c.faults == 0 && c.state == RIGCTL_STATE_FORCE_SETTLED);
+    }
     std::printf("contact missing: ok\n");
 }
 

@@ -580,7 +580,14 @@ static void probe_reading(ctl_t *c, float f)
             c->contact_valid = 1;
             c->contact_located = 1;
             c->located_x0_steps = c->contact_x0_steps;
-            c->located_k_g_per_step = c->contact_k_g_per_step;
+            /* its stiffness bounds CONTACT_MISSING's travel past it (2.13) only where the probe measured one: its
+             * steps pressed half of PROBE_REFINE_G or more (the scale check's own condition, which also holds it to
+             * the stiffness stored with the calibration). A probe at a tiny setpoint (a RUN at 0 g: the contact "found"
+             * at 0 g wherever the actuator stood), or one that took a load resting on the cell for the contact,
+             * measures noise: 38 g/mm where the contact was 1 kg/mm, and the next press latched CONTACT_MISSING with
+             * no contact ever there (the conformance suite, the model rig) */
+            c->located_k_g_per_step =
+                f - c->probe_f1_gf >= 0.5f * (float)RIGCTL_PROBE_REFINE_G ? c->contact_k_g_per_step : 0.0f;
             /* the probe's measuring step(s) went forward and the settled load rose with them: the way is proven for
              * the rest of this press (spec 2.11), until the release, HOME, a fault or the watch's evidence against */
             c->press_dir_held = f - c->probe_f1_gf >= (float)RIGCTL_PRESS_DIR_G;
