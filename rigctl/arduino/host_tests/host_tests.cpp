@@ -835,11 +835,7 @@ static void test_stiffness()
         ctl_t c;
         Plant p;
         uint32_t now = 0;
-        p.sinc4 = true;
-        p.k = k;
-        ctl_init(&c, 0, 0);
-        run_ms(c, p, now, 100);
-        home(c, p, now);
+        calibrated_at_home(c, p, now, k, 0); // no stiffness stored (the default)
         CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 1000) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
         int ms = 0;
         for (; ms < 8000 && c.state == RIGCTL_STATE_SEEKING_FORCE; ms += 10) run_ms(c, p, now, 10);
@@ -881,11 +877,7 @@ static void test_stiffness()
         ctl_t c;
         Plant p;
         uint32_t now = 0;
-        p.sinc4 = true;
-        p.k = 6000;
-        ctl_init(&c, 0, 0);
-        run_ms(c, p, now, 100);
-        home(c, p, now);
+        calibrated_at_home(c, p, now, 6000, 0); // no stiffness stored (the default)
         c.stiffness_g_mm = 500; // a stale contact (as before every press probed, spec 2.11): 500 g/mm at the gap
         c.contact_valid = 1;
         c.contact_k_g_per_step = 500.0f / c.hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
@@ -1067,11 +1059,7 @@ static void test_contact_missing()
         ctl_t c;
         Plant p;
         uint32_t now = 0;
-        p.sinc4 = true;
-        p.k = k;
-        ctl_init(&c, 0, 0);
-        run_ms(c, p, now, 100);
-        home(c, p, now);
+        calibrated_at_home(c, p, now, k, 0); // no stiffness stored (the default)
         press_settled(c, p, now, 300);
         CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_STOP));
         run_ms(c, p, now, 3000);
@@ -1098,11 +1086,7 @@ static void test_contact_missing()
         ctl_t c;
         Plant p;
         uint32_t now = 0;
-        p.sinc4 = true;
-        p.k = 1000;
-        ctl_init(&c, 0, 0);
-        run_ms(c, p, now, 100);
-        home(c, p, now);
+        calibrated_at_home(c, p, now, 1000, 0); // no stiffness stored (the default)
         CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 0) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
         run_ms(c, p, now, 3000);
         CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_STOP));
